@@ -1,0 +1,1 @@
+"""Robots: the RobotSpec model and the built-in robots."""

@@ -1,0 +1,139 @@
+"""The BatchSim interface: N worlds of one robot, stepped together.
+
+Every backend (MuJoCo C on CPU threads, mujoco_warp on a GPU) builds the same
+scene from `RobotSpec.mj_spec()` and exposes the same `SimState` of torch
+tensors on its device, so the environment, the samplers and the evaluation
+never know which backend runs.
+
+Conventions (world frame: z up; quaternions w, x, y, z; joints in policy order):
+  root_lin_vel   world frame [m/s]
+  root_ang_vel   root (body) frame [rad/s], as MuJoCo's free joint stores it
+  root_lin_acc   world frame [m/s^2], (v_end - v_start) / policy_dt, gravity excluded
+  joint_acc      (qdot_end - qdot_start) / policy_dt [rad/s^2]
+  joint_torque   actuator torque at the last physics substep [N·m]
+  contact_force  [N, substeps, components, 3] net contact force on each component
+                 at each physics substep of the last policy step, world frame [N],
+                 the force the component receives (resting: +weight along z).
+                 A record describes the state at the start of its substep, as
+                 MuJoCo's derived quantities do after mj_step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Protocol
+
+import torch
+
+from fallkit.robots.spec import RobotSpec
+
+
+class SimulationUnstable(RuntimeError):
+    """Raised only when instability cannot be recovered (e.g. a reset state is itself invalid)."""
+
+
+@dataclass
+class SimState:
+    """State of all worlds after the last reset or step; tensors on the sim's device."""
+
+    qpos: torch.Tensor  # [N, nq] MuJoCo layout: root xyz, root quat, joints in MJCF order
+    qvel: torch.Tensor  # [N, nv]
+    root_pos: torch.Tensor  # [N, 3]
+    root_quat: torch.Tensor  # [N, 4]
+    root_lin_vel: torch.Tensor  # [N, 3] world frame
+    root_ang_vel: torch.Tensor  # [N, 3] root frame
+    root_lin_acc: torch.Tensor  # [N, 3] world frame
+    joint_pos: torch.Tensor  # [N, J] policy order
+    joint_vel: torch.Tensor  # [N, J]
+    joint_acc: torch.Tensor  # [N, J]
+    joint_torque: torch.Tensor  # [N, J]
+    contact_force: torch.Tensor  # [N, S, C, 3]
+    unstable: torch.Tensor  # [N] bool: found unstable in the last step, and reset
+    # Only with body_state=True (the critic's privileged observation), else None:
+    body_pos: torch.Tensor | None = None  # [N, B, 3] world positions of all bodies (0 = world)
+    body_vel: torch.Tensor | None = None  # [N, B, 6] MuJoCo cvel: angular, linear about the subtree CoM
+
+    def clone(self) -> "SimState":
+        return SimState(**{f.name: _clone(getattr(self, f.name)) for f in fields(self)})
+
+
+def _clone(t: torch.Tensor | None) -> torch.Tensor | None:
+    return None if t is None else t.clone()
+
+
+class BatchSim(Protocol):
+    """What every simulator backend provides."""
+
+    spec: RobotSpec
+    num_worlds: int
+    device: torch.device
+    substeps: int
+    num_unstable: int  # worlds found unstable and reset since construction
+
+    @property
+    def state(self) -> SimState: ...
+
+    def reset(self, world_ids: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
+        """Put worlds `world_ids` into the given MuJoCo-layout states (forward kinematics included)."""
+
+    def step(self, joint_targets: torch.Tensor) -> SimState:
+        """One policy step: `substeps` physics steps of PD control toward `joint_targets` [N, J]."""
+
+    def set_gain_scale(self, scale: torch.Tensor) -> None:
+        """Scale kp and kd of every actuator, per world ([N]); 0 = zero torque."""
+
+    def set_external_wrench(self, body_ids: torch.Tensor, wrench: torch.Tensor) -> None:
+        """Apply [N, len(body_ids), 6] force (xyz) and torque (xyz), world frame, until changed."""
+
+
+class Layout:
+    """Index maps between MuJoCo's layout and policy order, shared by the backends."""
+
+    def __init__(self, spec: RobotSpec):
+        import mujoco
+
+        m = spec.mj_model()
+        self.nq, self.nv, self.nbody = m.nq, m.nv, m.nbody
+        root = m.body(spec.root_body)
+        jid = m.body_jntadr[root.id]
+        if m.jnt_type[jid] != mujoco.mjtJoint.mjJNT_FREE:
+            raise ValueError(f"robot '{spec.name}': root body '{spec.root_body}' has no free joint")
+        self.root_qpos = int(m.jnt_qposadr[jid])
+        self.root_qvel = int(m.jnt_dofadr[jid])
+        self.root_body = int(root.id)
+        self.joint_qpos = torch.tensor([m.jnt_qposadr[m.joint(n).id] for n in spec.joint_names])
+        self.joint_qvel = torch.tensor([m.jnt_dofadr[m.joint(n).id] for n in spec.joint_names])
+        # contact sensors are added per component body, in component order
+        comp_of_sensor, sensor_adr = [], []
+        for c, comp in enumerate(spec.components.values()):
+            for body in comp.bodies:
+                s = m.sensor(f"contact_{body}")
+                comp_of_sensor.append(c)
+                sensor_adr.append(int(m.sensor_adr[s.id]))
+        self.sensor_adr = torch.tensor(sensor_adr)
+        # [C, bodies] 0/1 matrix summing body sensors into components
+        self.component_sum = torch.zeros(len(spec.components), len(sensor_adr))
+        self.component_sum[comp_of_sensor, torch.arange(len(sensor_adr))] = 1.0
+        self.qpos0 = torch.tensor(m.qpos0, dtype=torch.float64)
+
+    def qpos(
+        self, root_pos: torch.Tensor, root_quat: torch.Tensor, joint_pos: torch.Tensor
+    ) -> torch.Tensor:
+        """MuJoCo-layout qpos [n, nq] from root pose and joint angles in policy order."""
+        n = root_pos.shape[0]
+        q = self.qpos0.to(root_pos.dtype).repeat(n, 1)
+        q[:, self.root_qpos : self.root_qpos + 3] = root_pos
+        q[:, self.root_qpos + 3 : self.root_qpos + 7] = root_quat
+        q[:, self.joint_qpos] = joint_pos.to(q.dtype)
+        return q
+
+    def qvel(
+        self, root_lin_vel: torch.Tensor, root_ang_vel: torch.Tensor, joint_vel: torch.Tensor
+    ) -> torch.Tensor:
+        """MuJoCo-layout qvel [n, nv]; root_lin_vel in world, root_ang_vel in root frame."""
+        n = root_lin_vel.shape[0]
+        v = torch.zeros(n, self.nv, dtype=root_lin_vel.dtype)
+        v[:, self.root_qvel : self.root_qvel + 3] = root_lin_vel
+        v[:, self.root_qvel + 3 : self.root_qvel + 6] = root_ang_vel
+        v[:, self.joint_qvel] = joint_vel.to(v.dtype)
+        return v

@@ -1,0 +1,209 @@
+"""MuJoCo C backend: N worlds on a persistent thread pool (`mujoco.batch.Batch`).
+
+One policy step is one `Batch.rollout` call of `substeps` physics steps that
+records the contact sensors after every substep, so PD control (MuJoCo position
+actuators) and the per-component contact forces are all computed in C, on all
+threads, with no Python per substep.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import mujoco
+import mujoco.batch
+import numpy as np
+import torch
+
+from fallkit.robots.spec import RobotSpec
+from fallkit.sim.base import Layout, SimState
+
+log = logging.getLogger(__name__)
+
+
+class MujocoSim:
+    """BatchSim on MuJoCo C. Float64 physics; state handed out as float32 torch tensors."""
+
+    def __init__(
+        self,
+        spec: RobotSpec,
+        num_worlds: int,
+        threads: int = 0,
+        max_speed: float = 200.0,
+        body_state: bool = False,
+    ):
+        if num_worlds < 1:
+            raise ValueError(f"sim: num_worlds must be >= 1, got {num_worlds}")
+        self.spec = spec
+        self.num_worlds = num_worlds
+        self.device = torch.device("cpu")
+        self.substeps = spec.substeps
+        self.policy_dt = spec.policy_dt
+        self.max_speed = max_speed
+        self.num_unstable = 0
+        self.model = spec.mj_model()
+        self.layout = Layout(spec)
+        self.batch = mujoco.batch.Batch(self.model, num_worlds, nthread=threads)
+
+        b = self.batch
+        self._qpos, self._qvel, self._ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
+        self._xfrc = b.bind("xfrc_applied")
+        # derived outputs, refreshed by every call (one substep behind after a step);
+        # body kinematics cost ~5 % of the physics, so only when asked for (critic)
+        self.body_state = body_state
+        self._xpos = b.bind("xpos") if body_state else None
+        self._cvel = b.bind("cvel") if body_state else None
+        self._torque = b.bind("actuator_force")
+        self._warning = b.warning
+        self._base_kp = self.model.actuator_gainprm[:, 0].copy()
+        self._base_kd = -self.model.actuator_biasprm[:, 2].copy()
+        self._gainprm = None  # expanded per world on first gain change (shared until then)
+        # contact sensors are the only sensors of the scene, 3 values each
+        if self.model.nsensordata != 3 * len(self.layout.sensor_adr):
+            raise ValueError(f"robot '{spec.name}': the MJCF must not define sensors of its own")
+        self._sensor_order = (self.layout.sensor_adr // 3).long()
+        self._neg_comp_sum = -self.layout.component_sum
+        # only the contact sensors are needed at every substep
+        self._rec = {"sensordata": np.zeros((num_worlds, self.substeps, self.model.nsensordata))}
+
+        # Every world starts in the model's default state (qpos0, at rest).
+        b.reset()
+        self._reset_qpos = self._qpos.copy()
+        self._reset_qvel = self._qvel.copy()
+        self._state = self._read(
+            np.zeros((num_worlds, self.substeps, self.model.nsensordata)),
+            np.zeros((num_worlds, self.model.nu)),
+            self._qvel.copy(),
+            np.zeros(num_worlds, bool),
+        )
+
+    # ---- BatchSim ---------------------------------------------------------------------
+
+    @property
+    def state(self) -> SimState:
+        return self._state
+
+    def reset(self, world_ids: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
+        ids = np.asarray(world_ids.cpu(), dtype=np.int64)
+        if ids.size == 0:
+            return
+        qpos = np.asarray(qpos.detach().cpu(), dtype=np.float64)
+        qvel = np.asarray(qvel.detach().cpu(), dtype=np.float64)
+        if not (np.isfinite(qpos).all() and np.isfinite(qvel).all()):
+            raise ValueError("sim.reset: qpos/qvel contain NaN or Inf")
+        # Batch.reset discards writes made before it, so reset first, then write.
+        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        self._qpos[ids] = qpos
+        self._qvel[ids] = qvel
+        self._ctrl[ids] = qpos[:, self.layout.joint_qpos.numpy()]  # hold the reset pose
+        self._reset_qpos[ids] = qpos
+        self._reset_qvel[ids] = qvel
+        self.batch.forward(ids)
+        self._write_rows(ids, qvel)
+
+    def step(self, joint_targets: torch.Tensor) -> SimState:
+        targets = np.asarray(joint_targets.detach().cpu(), dtype=np.float64)
+        self._ctrl[:] = targets
+        qvel_before = self._qvel.copy()
+        warnings_before = self._warning[:, :, 1].sum(axis=-1).copy()
+        failed = np.zeros(self.num_worlds, bool)
+        try:
+            self.batch.rollout(self.substeps, record=tuple(self._rec), out=self._rec)
+        except mujoco.batch.SimulationError as exc:
+            failed[np.asarray(exc.args[0], dtype=np.int64)] = True
+        unstable = failed | self._unstable(warnings_before)
+        state = self._read(self._rec["sensordata"], self._torque, qvel_before, unstable)
+        self._state = state
+        if unstable.any():
+            self._recover(np.flatnonzero(unstable))
+        return state
+
+    def set_gain_scale(self, scale: torch.Tensor) -> None:
+        s = np.asarray(scale.detach().cpu(), dtype=np.float64).reshape(self.num_worlds, 1)
+        if self._gainprm is None:
+            self._gainprm = self.batch.expand("actuator_gainprm")
+            self._biasprm = self.batch.expand("actuator_biasprm")
+        self._gainprm[:, :, 0] = self._base_kp * s
+        self._biasprm[:, :, 1] = -self._base_kp * s
+        self._biasprm[:, :, 2] = -self._base_kd * s
+
+    def set_external_wrench(self, body_ids: torch.Tensor, wrench: torch.Tensor) -> None:
+        ids = np.asarray(body_ids.cpu(), dtype=np.int64)
+        self._xfrc[:] = 0.0
+        self._xfrc[:, ids] = np.asarray(wrench.detach().cpu(), dtype=np.float64)
+
+    # ---- internals --------------------------------------------------------------------
+
+    def _unstable(self, warnings_before: np.ndarray) -> np.ndarray:
+        qpos, qvel = self._qpos, self._qvel
+        bad = ~np.isfinite(qpos).all(axis=1) | ~np.isfinite(qvel).all(axis=1)
+        bad |= np.abs(qvel).max(axis=1) > self.max_speed
+        # MuJoCo resets a diverging world itself (mj_checkAcc) and raises a warning
+        bad |= self._warning[:, :, 1].sum(axis=-1) > warnings_before
+        return bad
+
+    def _recover(self, ids: np.ndarray) -> None:
+        """Put unstable worlds back to their last reset state, count and log them."""
+        self.num_unstable += len(ids)
+        log.warning(
+            "sim: %d world(s) became unstable (NaN/Inf, speed > %g, or a MuJoCo warning) and were reset; "
+            "%d so far", len(ids), self.max_speed, self.num_unstable,
+        )
+        qpos, qvel = self._reset_qpos[ids].copy(), self._reset_qvel[ids].copy()
+        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        self._qpos[ids] = qpos
+        self._qvel[ids] = qvel
+        self._ctrl[ids] = qpos[:, self.layout.joint_qpos.numpy()]
+        self.batch.forward(ids)
+        self._write_rows(ids, qvel)
+
+    def _write_rows(self, ids: np.ndarray, qvel: np.ndarray) -> None:
+        """Refresh the handed-out state of worlds that were just reset."""
+        st = self._state
+        t = torch.from_numpy
+        lay = self.layout
+        st.qpos[ids] = t(self._qpos[ids]).float()
+        st.qvel[ids] = t(self._qvel[ids]).float()
+        r = lay.root_qpos
+        st.root_pos[ids] = st.qpos[ids, r : r + 3]
+        st.root_quat[ids] = st.qpos[ids, r + 3 : r + 7]
+        v = lay.root_qvel
+        st.root_lin_vel[ids] = st.qvel[ids, v : v + 3]
+        st.root_ang_vel[ids] = st.qvel[ids, v + 3 : v + 6]
+        st.joint_pos[ids] = st.qpos[ids][:, lay.joint_qpos]
+        st.joint_vel[ids] = st.qvel[ids][:, lay.joint_qvel]
+        if self.body_state:
+            st.body_pos[ids] = torch.tensor(self._xpos[ids], dtype=torch.float32)
+            st.body_vel[ids] = torch.tensor(self._cvel[ids], dtype=torch.float32)
+        for name in ("root_lin_acc", "joint_acc", "joint_torque", "contact_force"):
+            getattr(st, name)[ids] = 0.0
+
+    def _read(self, sensordata: np.ndarray, torque: np.ndarray, qvel_before: np.ndarray, unstable: np.ndarray) -> SimState:
+        lay = self.layout
+        n, s = self.num_worlds, self.substeps
+        qpos = torch.from_numpy(self._qpos).float()
+        qvel64 = torch.from_numpy(self._qvel)
+        qvel = qvel64.float()
+        dv = ((qvel64 - torch.from_numpy(qvel_before)) * (1.0 / self.policy_dt)).float()
+        # body sensors [N, S, bodies, 3] summed into components; MuJoCo reports the
+        # force the body exerts, so the sign flips to the force the component receives.
+        body_f = torch.from_numpy(sensordata).view(n, s, -1, 3)[:, :, self._sensor_order].float()
+        comp_f = torch.einsum("cb,nsbk->nsck", self._neg_comp_sum, body_f)
+        r, v = lay.root_qpos, lay.root_qvel
+        return SimState(
+            qpos=qpos,
+            qvel=qvel,
+            root_pos=qpos[:, r : r + 3],
+            root_quat=qpos[:, r + 3 : r + 7],
+            root_lin_vel=qvel[:, v : v + 3],
+            root_ang_vel=qvel[:, v + 3 : v + 6],
+            root_lin_acc=dv[:, v : v + 3],
+            joint_pos=qpos[:, lay.joint_qpos],
+            joint_vel=qvel[:, lay.joint_qvel],
+            joint_acc=dv[:, lay.joint_qvel],
+            joint_torque=torch.tensor(torque, dtype=torch.float32),  # outputs are read-only
+            contact_force=comp_f,
+            unstable=torch.from_numpy(unstable.copy()),
+            body_pos=torch.tensor(self._xpos, dtype=torch.float32) if self.body_state else None,
+            body_vel=torch.tensor(self._cvel, dtype=torch.float32) if self.body_state else None,
+        )
