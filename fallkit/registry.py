@@ -58,7 +58,7 @@ def validator(group: str) -> Callable[[Check], Check]:
 
 
 @cache
-def _scan(group: str) -> tuple[dict[str, Entry], dict[str, list[Entry]]]:
+def scan(group: str) -> tuple[dict[str, Entry], dict[str, list[Entry]]]:
     """Entries of a group by name, and the names registered more than once."""
     by_name: dict[str, list[Entry]] = {}
     seen: set[tuple[str, str, str]] = set()
@@ -77,13 +77,13 @@ def _scan(group: str) -> tuple[dict[str, Entry], dict[str, list[Entry]]]:
 
 def clear_cache() -> None:
     """Forget discovered entries (after installing a plugin in a running process)."""
-    _scan.cache_clear()
+    scan.cache_clear()
     _load.cache_clear()
 
 
 def entries(group: str) -> dict[str, Entry]:
     """All names of a group, without importing anything. Duplicates are errors."""
-    unique, duplicated = _scan(group)
+    unique, duplicated = scan(group)
     if duplicated:
         name, es = next(iter(duplicated.items()))
         raise PluginError(_duplicate_message(group, name, es))
@@ -92,7 +92,7 @@ def entries(group: str) -> dict[str, Entry]:
 
 def names(group: str) -> list[str]:
     """Registered names of a group, duplicates included (for listings and hints)."""
-    unique, duplicated = _scan(group)
+    unique, duplicated = scan(group)
     return sorted({*unique, *duplicated})
 
 
@@ -103,7 +103,7 @@ def load(group: str, name: str) -> Any:
 
 @cache
 def _load(group: str, name: str) -> Any:
-    unique, duplicated = _scan(group)
+    unique, duplicated = scan(group)
     if name in duplicated:
         raise PluginError(_duplicate_message(group, name, duplicated[name]))
     if name not in unique:

@@ -1,0 +1,1 @@
+"""Reward terms (paper Table I), each a small pure function of a batch context."""

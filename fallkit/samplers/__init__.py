@@ -1,0 +1,1 @@
+"""Samplers: initial falling states, end poses, disturbances."""
