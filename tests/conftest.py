@@ -1,0 +1,27 @@
+"""Shared fixtures: real robots, real simulators."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+# Tests run on 2 cores beside MuJoCo's threads: keep torch from oversubscribing.
+torch.set_num_threads(1)
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+# Simulator backends the shared simulator tests run against.
+SIM_BACKENDS = ["mujoco"]
+
+
+@pytest.fixture(scope="session")
+def biped():
+    from fallkit.api import get_robot
+
+    return get_robot("biped20")
+
+
+@pytest.fixture(params=SIM_BACKENDS)
+def backend(request) -> str:
+    return request.param
