@@ -85,6 +85,12 @@ class BatchSim(Protocol):
     def set_external_wrench(self, body_ids: torch.Tensor, wrench: torch.Tensor) -> None:
         """Apply [N, len(body_ids), 6] force (xyz) and torque (xyz), world frame, until changed."""
 
+    def state_dict(self) -> dict:
+        """The full physics state of all worlds, so a resumed run continues exactly."""
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what state_dict() returned."""
+
 
 class Layout:
     """Index maps between MuJoCo's layout and policy order, shared by the backends."""

@@ -132,6 +132,29 @@ class MujocoSim:
         self._xfrc[:] = 0.0
         self._xfrc[:, ids] = np.asarray(wrench.detach().cpu(), dtype=np.float64)
 
+    def state_dict(self) -> dict:
+        """Full physics state of every world (warm-start and applied forces included), for exact resume."""
+        return {
+            "physics": torch.from_numpy(self.batch.state.copy()),
+            "reset_qpos": torch.from_numpy(self._reset_qpos.copy()),
+            "reset_qvel": torch.from_numpy(self._reset_qvel.copy()),
+            "gain_scale": None if self._gainprm is None else torch.from_numpy(self._gainprm[:, :, 0] / self._base_kp),
+            "num_unstable": self.num_unstable,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        physics = state["physics"].numpy()
+        if physics.shape != self.batch.state.shape:
+            raise ValueError(f"sim state has shape {physics.shape}, this simulator {self.batch.state.shape}")
+        self.batch.state[:] = physics
+        self._reset_qpos[:] = state["reset_qpos"].numpy()
+        self._reset_qvel[:] = state["reset_qvel"].numpy()
+        if state["gain_scale"] is not None:
+            self.set_gain_scale(state["gain_scale"][:, 0])
+        self.num_unstable = int(state["num_unstable"])
+        self.batch.forward()
+        self._write_rows(np.arange(self.num_worlds), self._qvel)
+
     # ---- internals --------------------------------------------------------------------
 
     def _unstable(self, warnings_before: np.ndarray) -> np.ndarray:

@@ -1,0 +1,115 @@
+"""Actor and critic networks (paper Sec. V-A): ELU MLPs, a Gaussian policy with a learned
+state-independent standard deviation, and running observation normalisation.
+
+The normalisers live inside the networks, so a checkpoint's state_dict carries
+them and an exported policy normalises its own inputs.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
+
+
+class RunningNorm(nn.Module):
+    """Running mean/variance of observations; `update` changes the buffers in place.
+
+    In place matters: a collecting policy that shares these buffers sees the new
+    statistics at once (replacing the tensors left it with stale ones — NOTES).
+    """
+
+    def __init__(self, dim: int, clip: float = 5.0, eps: float = 1e-8):
+        super().__init__()
+        self.clip, self.eps = clip, eps
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("var", torch.ones(dim))
+        self.register_buffer("count", torch.zeros(()))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merge a batch [..., dim] into the statistics (parallel-variance formula)."""
+        x = x.reshape(-1, x.shape[-1]).to(self.mean.dtype)
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean, var = x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        m2 = self.var * self.count + var * n + delta.square() * self.count * n / total
+        self.mean.add_(delta * n / total)
+        self.var.copy_(m2 / total)
+        self.count.fill_(total)
+
+    def merge_(self, mean: torch.Tensor, var: torch.Tensor, count: torch.Tensor) -> None:
+        """Set the statistics (e.g. after averaging them across distributed ranks)."""
+        self.mean.copy_(mean)
+        self.var.copy_(var)
+        self.count.copy_(count)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self.mean) / torch.sqrt(self.var + self.eps)).clamp(-self.clip, self.clip)
+
+
+def mlp(in_dim: int, hidden: list[int], out_dim: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for h in hidden:
+        layers += [nn.Linear(in_dim, h), nn.ELU()]
+        in_dim = h
+    layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+class GaussianPolicyNet(nn.Module):
+    """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], init_std: float):
+        super().__init__()
+        self.norm = RunningNorm(obs_dim)
+        self.mean = mlp(obs_dim, hidden, act_dim)
+        self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
+        # Small last layer: the first actions stay near the nominal pose.
+        nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
+        nn.init.zeros_(self.mean[-1].bias)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.mean(self.norm(obs))
+        return loc, self.log_std.exp().expand_as(loc)
+
+
+class ValueNet(nn.Module):
+    def __init__(self, obs_dim: int, hidden: list[int]):
+        super().__init__()
+        self.norm = RunningNorm(obs_dim)
+        self.value = mlp(obs_dim, hidden, 1)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.value(self.norm(obs))
+
+
+def make_actor(obs_dim: int, act_dim: int, hidden: list[int], init_std: float, action_spec=None) -> ProbabilisticActor:
+    """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
+    net = TensorDictModule(GaussianPolicyNet(obs_dim, act_dim, hidden, init_std), in_keys=["policy"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        net,
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        spec=action_spec,
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        log_prob_key="action_log_prob",
+    )
+
+
+def make_critic(obs_dim: int, hidden: list[int]) -> ValueOperator:
+    """TensorDict keys: "critic" -> "state_value"."""
+    return ValueOperator(ValueNet(obs_dim, hidden), in_keys=["critic"], out_keys=["state_value"])
+
+
+def policy_net(actor: ProbabilisticActor) -> GaussianPolicyNet:
+    return actor.module[0].module
+
+
+def value_net(critic: ValueOperator) -> ValueNet:
+    return critic.module

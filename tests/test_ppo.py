@@ -1,0 +1,67 @@
+"""PPO pieces: the adaptive learning-rate rule, the running normaliser, checkpoints."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fallkit.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, save_checkpoint
+from fallkit.models import RunningNorm
+from fallkit.ppo import adapt_learning_rate, gaussian_kl
+from fallkit.train_config import PPOConfig
+
+
+def test_adaptive_learning_rate_follows_rsl_rl():
+    cfg = PPOConfig(desired_kl=0.01, lr_min=1e-5, lr_max=1e-2)
+    assert adapt_learning_rate(1e-3, 0.05, cfg) == pytest.approx(1e-3 / 1.5)  # KL > 2 x target: smaller steps
+    assert adapt_learning_rate(1e-3, 0.001, cfg) == pytest.approx(1.5e-3)  # KL < target / 2: larger steps
+    assert adapt_learning_rate(1e-3, 0.01, cfg) == 1e-3  # in between: unchanged
+    assert adapt_learning_rate(1.2e-5, 1.0, cfg) == 1e-5  # floor
+    assert adapt_learning_rate(9e-3, 0.0001, cfg) == 1e-2  # ceiling
+    assert adapt_learning_rate(1e-3, 1.0, PPOConfig(desired_kl=None)) == 1e-3  # fixed rate
+
+
+def test_gaussian_kl_matches_torch():
+    loc0, s0 = torch.randn(64, 5), torch.rand(64, 5) + 0.2
+    loc1, s1 = torch.randn(64, 5), torch.rand(64, 5) + 0.2
+    p = torch.distributions.Independent(torch.distributions.Normal(loc0, s0), 1)
+    q = torch.distributions.Independent(torch.distributions.Normal(loc1, s1), 1)
+    assert gaussian_kl(loc0, s0, loc1, s1).item() == pytest.approx(torch.distributions.kl_divergence(p, q).mean().item(), rel=1e-5)
+
+
+def test_running_norm_matches_whole_batch_statistics_and_updates_in_place():
+    norm = RunningNorm(3)
+    mean_buffer = norm.mean
+    data = torch.randn(1000, 3) * torch.tensor([1.0, 5.0, 0.1]) + torch.tensor([2.0, -1.0, 0.0])
+    for chunk in data.split(137):
+        norm.update(chunk)
+    assert norm.mean is mean_buffer  # in place: collecting code sees the new statistics
+    torch.testing.assert_close(norm.mean, data.mean(0), atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(norm.var, data.var(0, unbiased=False), atol=1e-5, rtol=1e-4)
+    z = norm(data)
+    assert z.mean(0).abs().max() < 1e-4 and (z.std(0) - 1).abs().max() < 1e-2
+
+
+def test_checkpoint_roundtrip_and_run_dir(tmp_path):
+    path = save_checkpoint(tmp_path / "checkpoints" / "last.pt", {"iteration": 7, "w": torch.arange(3)})
+    assert resolve_checkpoint(tmp_path) == path
+    data = load_checkpoint(tmp_path)
+    assert data["iteration"] == 7 and data["w"].tolist() == [0, 1, 2]
+    assert not list((tmp_path / "checkpoints").glob("*.tmp"))  # nothing left behind
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])
+def test_damaged_checkpoint_is_a_clear_error(tmp_path, damage):
+    path = save_checkpoint(tmp_path / "c.pt", {"iteration": 1, "w": torch.randn(1000)})
+    raw = path.read_bytes()
+    path.write_bytes({"truncate": raw[: len(raw) // 2], "garbage": b"not a checkpoint" * 10, "empty": b""}[damage])
+    with pytest.raises(CheckpointError, match=r"c\.pt is corrupt or truncated"):
+        load_checkpoint(path)
+
+
+def test_missing_checkpoint_and_foreign_file(tmp_path):
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        load_checkpoint(tmp_path / "nope.pt")
+    torch.save({"some": "dict"}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="is not a fallkit checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")
