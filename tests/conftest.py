@@ -11,8 +11,10 @@ import torch
 torch.set_num_threads(1)
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
-# Simulator backends the shared simulator tests run against.
-SIM_BACKENDS = ["mujoco"]
+# Simulator backends the shared simulator tests run against. warp runs on Warp's CPU
+# device here (a GPU when present); its kernels compile once into the kernel cache
+# (~/.cache/fallkit/warp: 1-3 min cold on 2 busy cores, ~1-10 s to load warm).
+SIM_BACKENDS = ["mujoco", "warp"]
 
 
 @pytest.fixture(scope="session")
