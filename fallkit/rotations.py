@@ -71,10 +71,43 @@ def yaw_quat(q: torch.Tensor) -> torch.Tensor:
     return quat_from_euler(zero, zero, yaw)
 
 
+def heading_quat(q: torch.Tensor) -> torch.Tensor:
+    """The rotation about world z in q's swing–twist decomposition q = heading ⊗ tilt.
+
+    The path frame's orientation (paper Sec. IV-A). Unlike `yaw_quat` (x-axis
+    projection, singular at ±90° pitch: a robot lying on its back or front, the
+    most common end poses), this is continuous everywhere except upside down
+    (tilt 180°), where it falls back to the identity.
+    """
+    w, z = q[..., 0], q[..., 3]
+    n = torch.sqrt(w * w + z * z)
+    ok = n > 1e-6
+    n = torch.where(ok, n, torch.ones_like(n))
+    zero = torch.zeros_like(w)
+    return torch.stack((torch.where(ok, w / n, torch.ones_like(w)), zero, zero, torch.where(ok, z / n, zero)), -1)
+
+
+def tilt_quat(q: torch.Tensor) -> torch.Tensor:
+    """heading_quat(q)⁻¹ ⊗ q: q expressed in its path frame, yaw-free, w ≥ 0, z = 0.
+
+    Depends only on the direction of gravity in the frame of q, so it is the same
+    for q and for any rotation of q about world z (and for -q).
+    """
+    # closed form of heading_quat(q)⁻¹ ⊗ q (the swing): (n, (wx + zy)/n, (wy − zx)/n, 0), n = |(w, z)|
+    w, x, y, z = q.unbind(-1)
+    n = torch.sqrt(w * w + z * z)
+    ok = n > 1e-6
+    inv = 1.0 / torch.where(ok, n, torch.ones_like(n))
+    tx = torch.where(ok, (w * x + z * y) * inv, x)
+    ty = torch.where(ok, (w * y - z * x) * inv, y)
+    return torch.stack((n, tx, ty, torch.zeros_like(n)), -1)
+
+
 def gravity_in_frame(q: torch.Tensor) -> torch.Tensor:
     """R(q)ᵀ e_z: the world up axis expressed in the frame of q (paper Table I, orientation term)."""
-    ez = torch.tensor([0.0, 0.0, 1.0], dtype=q.dtype, device=q.device).expand_as(q[..., 1:])
-    return quat_rotate_inverse(q, ez)
+    # closed form (third row of R(q)): a handful of ops, it runs every policy step
+    w, x, y, z = q.unbind(-1)
+    return torch.stack((2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)), dim=-1)
 
 
 def geodesic_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -87,7 +120,21 @@ def normalize(q: torch.Tensor) -> torch.Tensor:
     return q / q.norm(dim=-1, keepdim=True)
 
 
+def yaw_align(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a turned about the world z axis by the yaw that brings it closest to b (geodesically).
+
+    With d = b ⊗ a⁻¹, ⟨Rz(ψ) ⊗ a, b⟩ = cos(ψ/2)·d_w + sin(ψ/2)·d_z, largest at
+    ψ = 2·atan2(d_z, d_w). Needs no heading, so it is defined for every
+    orientation (also lying face up). The paper's MROE compares b with this.
+    """
+    d = quat_mul(b, quat_conj(a))
+    half = torch.atan2(d[..., 3], d[..., 0])
+    z = torch.zeros_like(half)
+    return quat_mul(torch.stack((torch.cos(half), z, z, torch.sin(half)), dim=-1), a)
+
+
 __all__ = [
     "quat_mul", "quat_conj", "quat_rotate", "quat_rotate_inverse", "quat_from_axis_angle",
-    "quat_from_euler", "yaw_of", "yaw_quat", "gravity_in_frame", "geodesic_angle", "normalize",
+    "quat_from_euler", "yaw_of", "yaw_quat", "heading_quat", "tilt_quat", "gravity_in_frame", "geodesic_angle",
+    "normalize", "yaw_align",
 ]  # fmt: skip
