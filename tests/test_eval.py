@@ -1,0 +1,192 @@
+"""Paired evaluation: the same falls for every strategy, the strategies' gains, chunking, eval.json."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from fallkit import evaluate as ev
+from fallkit.config import ConfigError, FallkitConfig
+from fallkit.env import FallEnv, random_end_poses
+from fallkit.sim import make_sim
+from fallkit.strategies import STRATEGIES
+
+STEPS = 10  # 0.2 s falls: enough for the strategies to diverge, cheap on 2 cores
+SEED = 777
+
+
+def make_env(spec, worlds: int) -> FallEnv:
+    """An evaluation env with mode=eval's settings (eval_run_config), short falls, random end poses."""
+    cfg = ev.eval_run_config(FallkitConfig(robot={"name": spec.name}), STEPS * spec.policy_dt)
+    poses = random_end_poses(spec, 7, torch.Generator().manual_seed(0))
+    sim = make_sim(spec, worlds, body_state=True)
+    return FallEnv(spec, cfg.env, cfg.reward, poses, sim, seed=1)
+
+
+class HoldNominal(nn.Module):
+    """A policy that always asks for the nominal pose (action 0), and checks its batch."""
+
+    def __init__(self, expected_batch: int, joints: int):
+        super().__init__()
+        self.expected_batch, self.joints = expected_batch, joints
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        assert obs.shape[0] == self.expected_batch  # only the policy's own worlds are run through it
+        return torch.zeros(obs.shape[0], self.joints)
+
+
+def _gains(env: FallEnv, world: int) -> tuple[np.ndarray, np.ndarray]:
+    m = env.sim.batch.get_model(world)  # the world's model, with its per-world actuator parameters
+    return m.actuator_gainprm[:, 0].copy(), -m.actuator_biasprm[:, 2].copy()
+
+
+def test_strategies_fall_from_the_same_states_with_scaled_gains(biped):
+    k = 3
+    names = list(STRATEGIES)
+    env = make_env(biped, len(names) * k)
+    trials = ev.draw_trials(env, k, SEED)
+    out = ev.rollout(env, trials, names, record_states=True)
+
+    # pairing: every strategy block starts from the same states toward the same end poses
+    q0 = out.qpos[0].view(len(names), k, -1)
+    v0 = out.qvel[0].view(len(names), k, -1)
+    for i in range(1, len(names)):
+        assert torch.equal(q0[i], q0[0]) and torch.equal(v0[i], v0[0])
+        a, b = out.traces[names[0]], out.traces[names[i]]
+        assert torch.equal(a.target_joint_pos, b.target_joint_pos) and torch.equal(a.target_root_quat, b.target_root_quat)
+    assert torch.allclose(q0[0].double(), trials.qpos.float().double())
+
+    # gain scaling: kp and kd of every actuator × 0, 0.1, 10 in each block
+    kp = np.array([j.kp for j in biped.joints])
+    kd = np.array([j.kd for j in biped.joints])
+    for i, name in enumerate(names):
+        for w in (i * k, i * k + k - 1):
+            got_kp, got_kd = _gains(env, w)
+            assert got_kp == pytest.approx(STRATEGIES[name] * kp) and got_kd == pytest.approx(STRATEGIES[name] * kd)
+    assert torch.count_nonzero(out.joint_torque[:, :k]) == 0  # zero torque is exactly zero
+
+    # every strategy holds the setpoint the fall began with
+    start = out.qpos[0][:, env.sim.layout.joint_qpos]
+    assert torch.allclose(out.setpoint[1:], start.expand_as(out.setpoint[1:]), atol=1e-5)
+    # and the gains matter: the strategies' falls diverge
+    final = out.qpos[-1].view(len(names), k, -1)
+    assert not torch.allclose(final[0], final[2], atol=1e-3)
+
+
+def test_policy_block_acts_with_nominal_gains(biped):
+    k = 2
+    names = ev.EvalSetup(None, object(), None, "", "").strategies
+    assert names == ["policy", *STRATEGIES]
+    env = make_env(biped, len(names) * k)
+    policy = TensorDictModule(HoldNominal(k, len(biped.joints)), in_keys=["policy"], out_keys=["action"])
+    trials = ev.draw_trials(env, k, SEED)
+    out = ev.rollout(env, trials, names, policy, steps=3, record_states=True)
+    nominal = env.setpoint(torch.zeros(1, len(biped.joints)))
+    assert torch.allclose(out.setpoint[1:, :k], nominal.expand(3, k, -1))
+    kp = np.array([j.kp for j in biped.joints])
+    assert _gains(env, 0)[0] == pytest.approx(kp)
+    assert set(out.traces) == set(names)
+    with pytest.raises(ValueError, match="needs a policy"):
+        ev.rollout(env, trials, names, None)
+
+
+def test_chunked_evaluation_equals_one_batch_and_json_schema(biped, tmp_path):
+    names = list(STRATEGIES)
+    n = 5
+    big = make_env(biped, len(names) * n)
+    trials = ev.draw_trials(big, n, SEED)
+    whole = ev.evaluate(big, trials, names, show_progress=False)
+    k, chunks = ev.chunking(n, len(names), 6)  # 2 trials per chunk, the last one padded
+    assert (k, chunks) == (2, 3)
+    small = make_env(biped, len(names) * k)
+    chunked = ev.evaluate(small, trials, names, show_progress=False)
+    for name in names:
+        assert len(chunked[name]) == n
+        for key, value in whole[name].arrays().items():
+            np.testing.assert_allclose(getattr(chunked[name], key), value, rtol=1e-5, atol=1e-4, err_msg=f"{name}.{key}")
+
+    info = {"robot": biped.name, "checkpoint": None, "trials": n, "seconds": 0.2, "seed": SEED, "poses": "random", "elapsed": 1.0}
+    ev.write_results(whole, biped.component_names, info, tmp_path)
+    data = json.loads((tmp_path / "eval.json").read_text())
+    assert list(data) == names
+    stats = {"mean", "std", "median", "p95"}
+    for name in names:
+        s = data[name]
+        for metric in ("max_impact_force", "mean_impact_force", "fall_mean_impact_force", "mroe", "mje"):
+            assert set(s[metric]) == stats and all(np.isfinite(list(s[metric].values())))
+        assert s["trials"] == n and s["gain_scale"] == STRATEGIES[name]
+        assert list(s["per_component"]) == biped.component_names
+        for comp in s["per_component"].values():
+            assert set(comp) == {"max_impact_force", "mean_impact_force", "fall_mean_impact_force"}
+            assert set(comp["max_impact_force"]) == stats
+        assert s["max_impact_force"]["mean"] > 100.0  # 0.2 s after the drop every robot has touched down
+    md = (tmp_path / "eval.md").read_text()
+    assert all(name in md for name in names) and "MROE" in md
+    for png in ("impact_boxplot.png", "component_impact.png", "tracking_boxplot.png"):
+        assert (tmp_path / png).stat().st_size > 10_000
+    arrays = np.load(tmp_path / "eval_trials.npz")
+    assert arrays["freeze/max_impact_force"].shape == (n,)
+
+
+def test_trials_are_reproducible_and_use_every_pose(biped):
+    env = make_env(biped, 3)
+    a, b = ev.draw_trials(env, 14, SEED), ev.draw_trials(env, 14, SEED)
+    assert torch.equal(a.qpos, b.qpos) and torch.equal(a.pose_ids, b.pose_ids)
+    assert not torch.equal(ev.draw_trials(env, 14, SEED + 1).qpos, a.qpos)
+    assert torch.bincount(a.pose_ids, minlength=7).tolist() == [2] * 7  # 7 poses, each twice
+
+
+@pytest.mark.parametrize("trials,strategies,num_envs", [(1000, 4, 256), (1024, 4, 4096), (5, 3, 2), (32768, 4, 1024)])
+def test_chunking_fits_the_worlds_with_little_padding(trials, strategies, num_envs):
+    k, chunks = ev.chunking(trials, strategies, num_envs)
+    assert strategies * k <= max(num_envs, strategies)
+    assert k * chunks >= trials and k * chunks - trials < chunks
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_cli_evaluates_a_trained_policy_against_the_strategies(tmp_path):
+    """mode=eval end to end: a (tiny, briefly trained) checkpoint, artist end poses, eval.json with four strategies."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    from fallkit.app import register_robots
+    from fallkit.config import validate
+    from fallkit.train import run_train
+
+    tiny = [
+        "train=quick", "train.iterations=1", "train.num_steps=4", "train.actor_hidden=[16,16]",
+        "train.critic_hidden=[16,16]", "train.evaluate=false", "sim.num_envs=8", "sim.threads=1",
+        "env.poses=artist", "env.episode_length=0.3", "reward.blend_time=0.2",
+    ]  # fmt: skip
+    GlobalHydra.instance().clear()
+    register_robots()
+    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
+        raw = OmegaConf.to_container(compose(config_name="config", overrides=tiny), resolve=False)
+    raw.pop("hydra", None)
+    trained = validate(raw)
+    run_train(trained, tmp_path / "train")
+
+    r = _cli(f"checkpoint={tmp_path / 'train'}", "mode=eval", "eval.trials=3", "sim.num_envs=8", "hydra.run.dir=eval", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    data = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    assert list(data) == ["policy", *STRATEGIES]
+    assert all(data[s]["trials"] == 3 and data[s]["max_impact_force"]["p95"] > 0 for s in data)
+    assert "policy" in (tmp_path / "eval" / "eval.md").read_text()
+    # the training run's seed is refused: its initial states were seen in training
+    same_seed = trained.model_copy(update={"checkpoint": str(tmp_path / "train"), "eval": trained.eval.model_copy(update={"seed": trained.seed})})
+    with pytest.raises(ConfigError, match="eval.seed"):
+        ev.prepare(same_seed)
