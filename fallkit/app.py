@@ -21,20 +21,26 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from fallkit import registry
+from fallkit.checkpoint import CheckpointError
 from fallkit.config import ConfigError, FallkitConfig, validate
 from fallkit.registry import PluginError
+from fallkit.render import RenderError
 from fallkit.robots.spec import RobotSpecError
 
 log = logging.getLogger("fallkit")
 
 # mode -> "module:function(config, run_dir)"; imported only when chosen
 MODES: dict[str, str] = {
+    "train": "fallkit.train:run_train",
+    "export": "fallkit.export:run_export",
     "list": "fallkit.app:list_plugins",
     "eval": "fallkit.evaluate:run_eval",
+    "render": "fallkit.render:run_render",
+    "poses": "fallkit.samplers.end_poses:run_poses",
 }
 
 # Errors that are the user's to fix: one line, exit status 2, no traceback.
-USER_ERRORS = (ConfigError, PluginError, RobotSpecError, FileNotFoundError)
+USER_ERRORS = (ConfigError, PluginError, RobotSpecError, CheckpointError, RenderError, FileNotFoundError)
 
 
 def fail(message: str) -> None:

@@ -12,7 +12,12 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from fallkit.samplers.initial_state import InitialStateConfig
+from fallkit.env_config import EnvConfig
+from fallkit.evaluate import EvalConfig
+from fallkit.render import RenderConfig
+from fallkit.rewards.context import RewardConfig
+from fallkit.samplers.end_poses import PosesConfig
+from fallkit.train_config import TrainConfig
 
 
 class ConfigError(ValueError):
@@ -45,21 +50,9 @@ class SimConfig(BaseModel):
     num_envs: int = Field(256, gt=0, description="parallel worlds")
     threads: int = Field(0, ge=0, description="mujoco backend: CPU threads, 0 = all cores")
     device: str = Field("cpu", description="warp backend: auto | cpu | cuda:N")
-    nconmax: int | None = Field(None, gt=0, description="warp backend: contact buffer, all worlds")
-    njmax: int | None = Field(None, gt=0, description="warp backend: constraint rows per world")
+    nconmax: int | None = Field(None, gt=0, description="warp backend: contacts per world, pooled over worlds (None = from the robot)")
+    njmax: int | None = Field(None, gt=0, description="warp backend: constraint rows per world (None = from the robot)")
     max_speed: float = Field(200.0, gt=0, description="[m/s or rad/s] above this a world counts as unstable")
-
-
-class EvalConfig(BaseModel):
-    """Evaluation of a policy and the standard fall strategies."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    trials: int = Field(256, gt=0)
-    seconds: float = Field(3.0, gt=0, description="length of each fall [s]")
-    seed: int = 12345
-    checkpoint: str | None = None
-    initial_state: InitialStateConfig = Field(default_factory=InitialStateConfig)
 
 
 Mode = Literal["train", "list", "poses", "eval", "render", "export"]
@@ -72,9 +65,16 @@ class FallkitConfig(BaseModel):
 
     mode: Mode = "train"
     seed: int = 0
+    checkpoint: str | None = Field(None, description="a trained policy (file or run dir) for eval/render/export")
+    resume: str | None = Field(None, description="continue training from this checkpoint or run dir")
     robot: RobotConfig
     sim: SimConfig = Field(default_factory=SimConfig)
+    env: EnvConfig = Field(default_factory=EnvConfig)
+    reward: RewardConfig = Field(default_factory=RewardConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
+    render: RenderConfig = Field(default_factory=RenderConfig)
+    poses: PosesConfig = Field(default_factory=PosesConfig)
+    train: "TrainConfig" = Field(default_factory=lambda: TrainConfig())
 
 
 def validate(raw: dict[str, Any]) -> FallkitConfig:

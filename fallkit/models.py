@@ -61,20 +61,42 @@ def mlp(in_dim: int, hidden: list[int], out_dim: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+class HoldPrior(nn.Module):
+    """The action that holds the measured joint angles: (q − nominal) / action_scale.
+
+    Added to the MLP's output, it makes an untrained policy hold whatever pose the
+    robot is in (setpoint = measured angles: pure joint damping), which is where the
+    standard fall strategies start, instead of yanking every joint toward the
+    standing pose. The MLP learns the deviation from holding.
+    """
+
+    def __init__(self, joint_columns: torch.Tensor, nominal: torch.Tensor, action_scale: float):
+        super().__init__()
+        self.register_buffer("joint_columns", joint_columns.long())
+        self.register_buffer("nominal", nominal.float())
+        self.register_buffer("inv_scale", torch.tensor(1.0 / action_scale))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return (obs[..., self.joint_columns] - self.nominal) * self.inv_scale
+
+
 class GaussianPolicyNet(nn.Module):
     """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], init_std: float):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], init_std: float, hold: HoldPrior | None = None):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
         self.mean = mlp(obs_dim, hidden, act_dim)
+        self.hold = hold
         self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
-        # Small last layer: the first actions stay near the nominal pose.
+        # Small last layer: the first actions are the prior's (or the nominal pose without one).
         nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
         nn.init.zeros_(self.mean[-1].bias)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mean(self.norm(obs))
+        if self.hold is not None:
+            loc = loc + self.hold(obs)
         return loc, self.log_std.exp().expand_as(loc)
 
 
@@ -88,9 +110,13 @@ class ValueNet(nn.Module):
         return self.value(self.norm(obs))
 
 
-def make_actor(obs_dim: int, act_dim: int, hidden: list[int], init_std: float, action_spec=None) -> ProbabilisticActor:
+def make_actor(
+    obs_dim: int, act_dim: int, hidden: list[int], init_std: float, hold: HoldPrior | None = None, action_spec=None
+) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
-    net = TensorDictModule(GaussianPolicyNet(obs_dim, act_dim, hidden, init_std), in_keys=["policy"], out_keys=["loc", "scale"])
+    net = TensorDictModule(
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, hold), in_keys=["policy"], out_keys=["loc", "scale"]
+    )
     return ProbabilisticActor(
         net,
         in_keys=["loc", "scale"],

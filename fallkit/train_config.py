@@ -33,6 +33,9 @@ class TrainConfig(BaseModel):
     actor_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
     critic_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
     init_noise_std: float = Field(1.0, gt=0, description="initial policy std, in action units")
+    hold_prior: bool = Field(
+        True, description="policy mean = MLP + the action holding the measured joint angles (fallkit.models.HoldPrior)"
+    )
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")
