@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=4096, help="simulator worlds per chunk (all strategies)")
     ap.add_argument("--seconds", type=float, default=3.0, help="length of each fall [s]")
     ap.add_argument("--threads", type=int, default=0, help="MuJoCo threads, 0 = all cores")
-    ap.add_argument("--torch-threads", type=int, default=1, help="torch CPU threads (mode=eval: train.torch_threads, 1)")
+    ap.add_argument("--torch-threads", type=int, default=1, help="torch CPU threads (mode=eval uses 1)")
     ap.add_argument("--checkpoint", default=None, help="a trained policy instead of an untrained network")
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args()

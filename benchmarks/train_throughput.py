@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import torch
@@ -30,6 +31,7 @@ from fallkit.config import validate
 from fallkit.models import make_actor, make_critic
 from fallkit.ppo import PPO
 from fallkit.sim import make_sim
+from fallkit.train import hold_prior
 
 
 def config_for(args):
@@ -58,7 +60,9 @@ def main() -> None:
     p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
     args = p.parse_args()
     config = config_for(args)
-    torch.set_num_threads(config.train.torch_threads)
+    # as fallkit.train: one torch thread while MuJoCo collects, all cores for the update
+    update_threads = config.train.torch_threads or os.cpu_count() or 1
+    torch.set_num_threads(1)
     spec = config.robot.spec()
     tc = config.train
 
@@ -67,7 +71,7 @@ def main() -> None:
     obs_dim = env.observation_spec["policy"].shape[-1]
     critic_dim = env.observation_spec["critic"].shape[-1]
     act_dim = env.action_spec.shape[-1]
-    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std)
+    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, hold_prior(config, spec))
     critic = make_critic(critic_dim, tc.critic_hidden)
     ppo = PPO(actor, critic, tc.ppo)
     td = env.reset()
@@ -81,9 +85,11 @@ def main() -> None:
                 steps.append(td)
                 td = nxt
         batch = torch.stack(steps, dim=1)
+        torch.set_num_threads(update_threads)
         ppo.update(batch)
         actor.module[0].module.norm.update(batch["policy"])
         critic.module.norm.update(batch["critic"])
+        torch.set_num_threads(1)
         return td, batch
 
     td, batch = iteration(td)  # warm-up
@@ -124,11 +130,13 @@ def main() -> None:
         batch_size=shape,
     )
     ppo2 = PPO(make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std), make_critic(critic_dim, tc.critic_hidden), tc.ppo)
+    torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())
     t = time.perf_counter()
     for _ in range(args.iterations):
         ppo2.update(fake.clone())
     t_update = (time.perf_counter() - t) / args.iterations
+    torch.set_num_threads(1)
 
     ratio = t_iter / (t_sim + t_update)
     print(f"{args.envs} envs x {tc.num_steps} steps, actor/critic 3x{args.hidden}, {tc.ppo.epochs} epochs x {tc.ppo.num_minibatches} minibatches")

@@ -42,7 +42,9 @@ log = logging.getLogger(__name__)
 def run_train(config: FallkitConfig, run_dir: Path) -> Path:
     tc = config.train
     rank = _init_distributed(config)
-    torch.set_num_threads(tc.torch_threads)
+    # MuJoCo's threads own the cores while collecting; the update has them to itself
+    collect_threads, update_threads = 1, tc.torch_threads or os.cpu_count() or 1
+    torch.set_num_threads(collect_threads)
     seed = config.seed + 1_000_003 * rank
     torch.manual_seed(seed)
     spec = config.robot.spec()
@@ -97,8 +99,10 @@ def run_train(config: FallkitConfig, run_dir: Path) -> Path:
             batch = torch.stack(steps, dim=1)
             t1 = time.perf_counter()
             # ---- learn --------------------------------------------------------------
+            torch.set_num_threads(update_threads)
             stats = ppo.update(batch, generator=shuffle)
             _update_normalizers(actor, critic, batch)
+            torch.set_num_threads(collect_threads)
             t2 = time.perf_counter()
             it += 1
 

@@ -39,4 +39,6 @@ class TrainConfig(BaseModel):
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")
-    torch_threads: int = Field(1, ge=1, description="CPU threads of torch (MuJoCo has its own)")
+    torch_threads: int = Field(
+        0, ge=0, description="torch CPU threads of the PPO update (0 = all cores); collection uses one beside MuJoCo's"
+    )
