@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -18,9 +19,11 @@ PLUGIN = Path(__file__).parent / "plugins" / "fallkit-testplugins"
 def plugin_site(tmp_path_factory) -> Path:
     """pip-install the faulty test plugin into a private directory (not the venv)."""
     target = tmp_path_factory.mktemp("site")
+    source = tmp_path_factory.mktemp("src") / PLUGIN.name  # build from a copy: no build/ in the tree
+    shutil.copytree(PLUGIN, source)
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-         "--no-index", "--target", str(target), str(PLUGIN)],
+         "--no-index", "--target", str(target), str(source)],
         check=True, capture_output=True, text=True,
     )  # fmt: skip
     return target

@@ -92,6 +92,14 @@ class BatchSim(Protocol):
         """Restore what state_dict() returned."""
 
 
+@dataclass
+class _Indices:
+    joint_qpos: torch.Tensor
+    joint_qvel: torch.Tensor
+    sensor_order: torch.Tensor
+    neg_component_sum: torch.Tensor
+
+
 class Layout:
     """Index maps between MuJoCo's layout and policy order, shared by the backends."""
 
@@ -121,6 +129,61 @@ class Layout:
         self.component_sum = torch.zeros(len(spec.components), len(sensor_adr))
         self.component_sum[comp_of_sensor, torch.arange(len(sensor_adr))] = 1.0
         self.qpos0 = torch.tensor(m.qpos0, dtype=torch.float64)
+        if m.nsensordata != 3 * len(sensor_adr):
+            raise ValueError(f"robot '{spec.name}': the MJCF must not define sensors of its own")
+        self._on: dict[str, _Indices] = {}
+
+    def on(self, device: torch.device) -> "_Indices":
+        """The index tensors on `device` (cached: backends call this every step)."""
+        key = str(device)
+        if key not in self._on:
+            self._on[key] = _Indices(
+                joint_qpos=self.joint_qpos.to(device),
+                joint_qvel=self.joint_qvel.to(device),
+                sensor_order=(self.sensor_adr // 3).long().to(device),
+                neg_component_sum=(-self.component_sum).to(device),
+            )
+        return self._on[key]
+
+    def state(
+        self,
+        qpos: torch.Tensor,
+        qvel: torch.Tensor,
+        accel: torch.Tensor,
+        sensordata: torch.Tensor,
+        joint_torque: torch.Tensor,
+        unstable: torch.Tensor,
+        body_pos: torch.Tensor | None,
+        body_vel: torch.Tensor | None,
+    ) -> SimState:
+        """A SimState from a backend's float32 tensors (one device): the slicing every backend shares.
+
+        qpos/qvel [N, nq/nv]; accel = Δqvel / policy_dt [N, nv]; sensordata [N, S, nsensordata]
+        holds the contact sensors of every substep (the scene has no other sensors).
+        """
+        idx = self.on(qpos.device)
+        n, s = sensordata.shape[:2]
+        # body sensors [N, S, bodies, 3] summed into components; MuJoCo reports the
+        # force the body exerts, so the sign flips to the force the component receives.
+        body_f = sensordata.view(n, s, -1, 3)[:, :, idx.sensor_order]
+        r, v = self.root_qpos, self.root_qvel
+        return SimState(
+            qpos=qpos,
+            qvel=qvel,
+            root_pos=qpos[:, r : r + 3],
+            root_quat=qpos[:, r + 3 : r + 7],
+            root_lin_vel=qvel[:, v : v + 3],
+            root_ang_vel=qvel[:, v + 3 : v + 6],
+            root_lin_acc=accel[:, v : v + 3],
+            joint_pos=qpos[:, idx.joint_qpos],
+            joint_vel=qvel[:, idx.joint_qvel],
+            joint_acc=accel[:, idx.joint_qvel],
+            joint_torque=joint_torque,
+            contact_force=torch.einsum("cb,nsbk->nsck", idx.neg_component_sum, body_f),
+            unstable=unstable,
+            body_pos=body_pos,
+            body_vel=body_vel,
+        )
 
     def qpos(
         self, root_pos: torch.Tensor, root_quat: torch.Tensor, joint_pos: torch.Tensor

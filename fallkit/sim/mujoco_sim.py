@@ -58,11 +58,6 @@ class MujocoSim:
         self._base_kp = self.model.actuator_gainprm[:, 0].copy()
         self._base_kd = -self.model.actuator_biasprm[:, 2].copy()
         self._gainprm = None  # expanded per world on first gain change (shared until then)
-        # contact sensors are the only sensors of the scene, 3 values each
-        if self.model.nsensordata != 3 * len(self.layout.sensor_adr):
-            raise ValueError(f"robot '{spec.name}': the MJCF must not define sensors of its own")
-        self._sensor_order = (self.layout.sensor_adr // 3).long()
-        self._neg_comp_sum = -self.layout.component_sum
         # only the contact sensors are needed at every substep
         self._rec = {"sensordata": np.zeros((num_worlds, self.substeps, self.model.nsensordata))}
 
@@ -202,30 +197,14 @@ class MujocoSim:
             getattr(st, name)[ids] = 0.0
 
     def _read(self, sensordata: np.ndarray, torque: np.ndarray, qvel_before: np.ndarray, unstable: np.ndarray) -> SimState:
-        lay = self.layout
-        n, s = self.num_worlds, self.substeps
-        qpos = torch.from_numpy(self._qpos).float()
         qvel64 = torch.from_numpy(self._qvel)
-        qvel = qvel64.float()
-        dv = ((qvel64 - torch.from_numpy(qvel_before)) * (1.0 / self.policy_dt)).float()
-        # body sensors [N, S, bodies, 3] summed into components; MuJoCo reports the
-        # force the body exerts, so the sign flips to the force the component receives.
-        body_f = torch.from_numpy(sensordata).view(n, s, -1, 3)[:, :, self._sensor_order].float()
-        comp_f = torch.einsum("cb,nsbk->nsck", self._neg_comp_sum, body_f)
-        r, v = lay.root_qpos, lay.root_qvel
-        return SimState(
-            qpos=qpos,
-            qvel=qvel,
-            root_pos=qpos[:, r : r + 3],
-            root_quat=qpos[:, r + 3 : r + 7],
-            root_lin_vel=qvel[:, v : v + 3],
-            root_ang_vel=qvel[:, v + 3 : v + 6],
-            root_lin_acc=dv[:, v : v + 3],
-            joint_pos=qpos[:, lay.joint_qpos],
-            joint_vel=qvel[:, lay.joint_qvel],
-            joint_acc=dv[:, lay.joint_qvel],
+        accel = ((qvel64 - torch.from_numpy(qvel_before)) * (1.0 / self.policy_dt)).float()
+        return self.layout.state(
+            qpos=torch.from_numpy(self._qpos).float(),
+            qvel=qvel64.float(),
+            accel=accel,
+            sensordata=torch.from_numpy(sensordata).float(),
             joint_torque=torch.tensor(torque, dtype=torch.float32),  # outputs are read-only
-            contact_force=comp_f,
             unstable=torch.from_numpy(unstable.copy()),
             body_pos=torch.tensor(self._xpos, dtype=torch.float32) if self.body_state else None,
             body_vel=torch.tensor(self._cvel, dtype=torch.float32) if self.body_state else None,

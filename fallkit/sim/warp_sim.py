@@ -318,8 +318,6 @@ class WarpSim:
 
         self._base_kp = torch.tensor(self.model.actuator_gainprm[:, 0], dtype=torch.float32, device=dev)
         self._base_kd = torch.tensor(-self.model.actuator_biasprm[:, 2], dtype=torch.float32, device=dev)
-        self._sensor_order = (self.layout.sensor_adr // 3).long().to(dev)
-        self._neg_comp_sum = (-self.layout.component_sum).to(dev)
         self._joint_qpos = self.layout.joint_qpos.to(dev)
         self._joint_qvel = self.layout.joint_qvel.to(dev)
         self._qvel_before = torch.zeros_like(self._qvel)
@@ -511,28 +509,13 @@ class WarpSim:
             getattr(st, name)[ids] = 0.0
 
     def _read(self, unstable: torch.Tensor) -> SimState:
-        """A snapshot of the device state (fresh tensors: the next step overwrites the views)."""
-        n, s = self.num_worlds, self.substeps
-        qpos, qvel = self._qpos.clone(), self._qvel.clone()
-        dv = (qvel - self._qvel_before) * (1.0 / self.policy_dt)
-        # body sensors [N, S, bodies, 3] summed into components; MuJoCo reports the
-        # force the body exerts, so the sign flips to the force the component receives.
-        body_f = self._rec.view(n, s, -1, 3)[:, :, self._sensor_order]
-        comp_f = torch.einsum("cb,nsbk->nsck", self._neg_comp_sum, body_f)
-        r, v = self.layout.root_qpos, self.layout.root_qvel
-        return SimState(
-            qpos=qpos,
-            qvel=qvel,
-            root_pos=qpos[:, r : r + 3],
-            root_quat=qpos[:, r + 3 : r + 7],
-            root_lin_vel=qvel[:, v : v + 3],
-            root_ang_vel=qvel[:, v + 3 : v + 6],
-            root_lin_acc=dv[:, v : v + 3],
-            joint_pos=qpos[:, self._joint_qpos],
-            joint_vel=qvel[:, self._joint_qvel],
-            joint_acc=dv[:, self._joint_qvel],
+        """The SimState after a step: clones, since the Warp arrays change with the next step."""
+        return self.layout.state(
+            qpos=self._qpos.clone(),
+            qvel=self._qvel.clone(),
+            accel=(self._qvel - self._qvel_before) * (1.0 / self.policy_dt),
+            sensordata=self._rec,
             joint_torque=self._torque.clone(),
-            contact_force=comp_f,
             unstable=unstable.clone(),
             body_pos=self._xpos.clone() if self.body_state else None,
             body_vel=self._cvel.clone() if self.body_state else None,
