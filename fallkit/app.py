@@ -80,8 +80,6 @@ def run(cfg: DictConfig) -> Any:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "resolved_config.yaml").write_text(OmegaConf.to_yaml(raw))
-        if config.mode not in MODES:
-            fail(f"mode '{config.mode}' is not available in this version; available: {', '.join(MODES)}")
         module, func = MODES[config.mode].split(":")
         handler: Callable[[FallkitConfig, Path], Any] = getattr(importlib.import_module(module), func)
         return handler(config, run_dir)

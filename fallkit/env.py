@@ -358,7 +358,7 @@ def _check_inputs(
 def random_end_poses(spec: RobotSpec, n: int, generator: torch.Generator) -> EndPoseSet:
     """n unsettled end poses: collision-free joints within limits, root pitch then yaw uniform in ±180°.
 
-    A stand-in for tests and for training before a pose dataset exists: the poses
+    For tests and quick experiments without a dataset (`fallkit.pose_files` loads real ones): the poses
     are not dropped and settled, so some cannot be reached at rest.
     """
     from fallkit.samplers.poses import PoseChecker

@@ -31,6 +31,8 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
     obs_dim = net.net.norm.mean.shape[0]
     onnx_path = run_dir / "policy.onnx"
     example = torch.zeros(1, obs_dim)
+    # The TorchScript exporter (dynamo=False): the newer torch.export one needs onnxscript,
+    # which fallkit does not depend on; this small MLP exports the same either way.
     torch.onnx.export(
         net, (example,), str(onnx_path), input_names=["observation"], output_names=["action"],
         dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}}, dynamo=False,

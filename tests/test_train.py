@@ -144,3 +144,26 @@ def test_training_on_the_warp_backend(tmp_path):
     ckpt = load_checkpoint(last)
     assert ckpt["iteration"] == 2 and ckpt["config"]["sim"]["backend"] == "warp"
     assert all(torch.isfinite(v).all() for v in ckpt["actor"].values() if v.is_floating_point())
+
+
+def test_export_onnx_reproduces_the_policy(tmp_path):
+    import json
+
+    import numpy as np
+    import onnxruntime
+
+    from fallkit.export import run_export
+    from fallkit.policy import load_policy
+
+    train(tmp_path / "run", "train.iterations=1")
+    out = tmp_path / "export"
+    out.mkdir()
+    onnx_path = run_export(tiny_config(f"checkpoint={tmp_path / 'run'}", "mode=export"), out)
+    meta = json.loads((out / "policy.json").read_text())
+    policy = load_policy(tmp_path / "run")
+    assert meta["joint_names"] == policy.spec.joint_names and meta["policy_hz"] == 50.0
+    assert sum(part["size"] for part in meta["observation_layout"]) == meta["observation_size"]
+    obs = torch.randn(4, meta["observation_size"])
+    want = policy.module.module(obs).detach().numpy()
+    got = onnxruntime.InferenceSession(str(onnx_path)).run(["action"], {"observation": obs.numpy()})[0]
+    np.testing.assert_allclose(got, want, atol=1e-4)
