@@ -19,6 +19,8 @@ so every rank keeps identical weights and learning rate.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.distributed as dist
 from tensordict import TensorDict
@@ -109,6 +111,8 @@ class PPO:
         stats = {k: v / count for k, v in sums.items()}
         stats["learning_rate"] = self.learning_rate
         stats["action_std"] = net.log_std.exp().mean().item()
+        # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
+        stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
         return stats
 
     def state_dict(self) -> dict:
