@@ -23,7 +23,6 @@ import torch
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 from tensordict import TensorDict
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from fallkit.app import register_robots
 from fallkit.build import make_env
@@ -31,7 +30,7 @@ from fallkit.config import validate
 from fallkit.models import make_actor, make_critic
 from fallkit.ppo import PPO
 from fallkit.sim import make_sim
-from fallkit.train import hold_prior
+from fallkit.train import collect, hold_prior
 
 
 def config_for(args):
@@ -77,14 +76,7 @@ def main() -> None:
     td = env.reset()
 
     def iteration(td):
-        steps = []
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            for _ in range(tc.num_steps):
-                td = actor(td)
-                td, nxt = env.step_and_maybe_reset(td)
-                steps.append(td)
-                td = nxt
-        batch = torch.stack(steps, dim=1)
+        batch, td = collect(env, actor, td, tc.num_steps)
         torch.set_num_threads(update_threads)
         ppo.update(batch)
         actor.module[0].module.norm.update(batch["policy"])

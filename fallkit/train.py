@@ -82,21 +82,14 @@ def run_train(config: FallkitConfig, run_dir: Path) -> Path:
         while it < tc.iterations:
             t0 = time.perf_counter()
             # ---- collect ------------------------------------------------------------
-            steps = []
-            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-                for _ in range(tc.num_steps):
-                    td = actor(td)
-                    td, next_td = env.step_and_maybe_reset(td)
-                    steps.append(td)
-                    # episode impact: worst contact force on any component, in newtons
-                    force = td["next", "contact_force"].amax(dim=-1)
-                    episode_impact = torch.maximum(episode_impact, force)
-                    done = td["next", "done"].squeeze(-1)
-                    if done.any():
-                        finished_impacts.append(episode_impact[done].clone())
-                        episode_impact[done] = 0.0
-                    td = next_td
-            batch = torch.stack(steps, dim=1)
+            batch, td = collect(env, actor, td, tc.num_steps)
+            # episode impact: worst contact force on any component, in newtons
+            for t in range(tc.num_steps):
+                episode_impact = torch.maximum(episode_impact, batch["next", "contact_force"][:, t].amax(dim=-1))
+                done = batch["next", "done"][:, t].squeeze(-1)
+                if done.any():
+                    finished_impacts.append(episode_impact[done].clone())
+                    episode_impact[done] = 0.0
             t1 = time.perf_counter()
             # ---- learn --------------------------------------------------------------
             torch.set_num_threads(update_threads)
@@ -162,6 +155,21 @@ def run_train(config: FallkitConfig, run_dir: Path) -> Path:
 
 
 # ---- pieces --------------------------------------------------------------------------
+
+
+def collect(env, actor, td: TensorDict, num_steps: int) -> tuple[TensorDict, TensorDict]:
+    """num_steps policy steps in every env: the [num_envs, num_steps] batch and the next step's input.
+
+    TorchRL's step_and_maybe_reset restarts finished episodes (fresh initial state and end pose).
+    """
+    steps = []
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        for _ in range(num_steps):
+            td = actor(td)
+            td, next_td = env.step_and_maybe_reset(td)
+            steps.append(td)
+            td = next_td
+    return torch.stack(steps, dim=1), td
 
 
 def hold_prior(config: FallkitConfig, spec) -> HoldPrior | None:
