@@ -38,6 +38,16 @@ def _boxplot(ax, data: list[np.ndarray], names: list[str], ylabel: str, title: s
     ax.grid(axis="y", alpha=0.3)
 
 
+def _save(fig, path: Path, title: str) -> Path:
+    """Title, layout, PNG at 110 dpi, and close: the ending of every figure here."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def impact_boxplot(results: dict[str, TrialMetrics], path: Path, title: str = "") -> Path:
     """Box plots of max, mean and fall-phase mean impact force per strategy."""
     names = list(results)
@@ -49,12 +59,7 @@ def impact_boxplot(results: dict[str, TrialMetrics], path: Path, title: str = ""
     ]
     for ax, (key, label) in zip(axes, panels):
         _boxplot(ax, [getattr(results[n], key) for n in names], names, "force [N]", label)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def tracking_boxplot(results: dict[str, TrialMetrics], path: Path, title: str = "") -> Path:
@@ -63,12 +68,7 @@ def tracking_boxplot(results: dict[str, TrialMetrics], path: Path, title: str = 
     fig, axes = plt.subplots(1, 2, figsize=(9, 4.2))
     _boxplot(axes[0], [results[n].mroe for n in names], names, "[rad]", "root orientation error (MROE)")
     _boxplot(axes[1], [results[n].mje for n in names], names, "[rad]", "joint error (MJE)")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def component_impact(results: dict[str, TrialMetrics], components: list[str], path: Path, title: str = "") -> Path:
@@ -86,12 +86,7 @@ def component_impact(results: dict[str, TrialMetrics], components: list[str], pa
         ax.set_title(f"per component: {label} over trials")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_all(results: dict[str, TrialMetrics], components: list[str], out_dir: Path, title: str = "") -> list[Path]:
@@ -136,9 +131,4 @@ def learning_curve(metrics_csv: Path, path: Path, title: str = "") -> Path:
     axes[2].legend(fontsize=7, ncol=2)
     for ax in axes:
         ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
