@@ -566,6 +566,7 @@ def run_poses(config, run_dir: Path) -> Path:
     spec = config.robot.spec()
     pc: PosesConfig = config.poses
     backend = config.sim.backend
+    torch.set_num_threads(1)  # the cores belong to MuJoCo's physics threads (torch's beside them slow it down)
     log.info(
         "end poses for %s: %d train + %d test, seed %d, %d worlds on %s",
         spec.name, pc.train, pc.test, pc.seed, pc.num_worlds, backend,
