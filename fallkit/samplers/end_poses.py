@@ -13,8 +13,9 @@
 5. rebalancing: settled poses are binned by the direction of gravity in the root
    frame (an equal-area grid on the unit sphere) and sampling goes on until the
    over-full bins can be thinned to uniform coverage within `tolerance`; bins the
-   robot hardly ever reaches ("rare") keep all their poses. A drop lying slowly in
-   a bin that is already full is stopped early: it could only be discarded.
+   robot reaches less often than `min_share` x a uniform share ("rare") keep all
+   their poses (filling them would take many times the drops). A drop lying slowly
+   in a bin that is already full is stopped early: it could only be discarded.
 
 The drops run in a pool of `num_worlds` simulated worlds: a world that comes to
 rest is recorded and immediately re-used for the next candidate, so no world
@@ -76,7 +77,7 @@ class PosesConfig(BaseModel):
         0.1, ge=0, lt=1, description="uniform within: smallest covered bin >= (1 - tolerance) × largest"
     )
     min_share: float = Field(
-        0.6,
+        1.0,
         ge=0,
         le=1,
         description="bins settled into less often than this fraction of a uniform share are 'rare': "
@@ -86,8 +87,8 @@ class PosesConfig(BaseModel):
     abort_steps: int = Field(
         2, ge=0, description="policy steps a drop may lie slowly in an over-full bin before it is stopped (0 = never)"
     )
-    abort_lin_vel: float = Field(0.3, gt=0, description="[m/s] 'slowly' for the early stop")
-    abort_ang_vel: float = Field(1.0, gt=0, description="[rad/s] 'slowly' for the early stop")
+    abort_lin_vel: float = Field(1.0, gt=0, description="[m/s] 'slowly' for the early stop")
+    abort_ang_vel: float = Field(3.0, gt=0, description="[rad/s] 'slowly' for the early stop")
     artist: str | None = Field(
         "artist", description="artist poses for the contact sheet: a pose file, 'artist' (the robot's own) or null"
     )
