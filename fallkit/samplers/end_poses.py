@@ -105,7 +105,9 @@ class OrientationBins:
     the ground (+x front, -x back, +y left, -y right, -z feet, +z head). Bands
     are equal steps of d_z (Archimedes: equal areas), sectors equal steps of the
     azimuth with sector 0 centred on +x (lying on the front), so front, back and
-    both sides each sit in the middle of a bin.
+    both sides each sit in the middle of a sector. With an even number of bands,
+    lying flat (d_z = 0) is on a band boundary: slight tilts towards head or feet
+    land in the two neighbouring bands.
     """
 
     def __init__(self, bands: int, sectors: int):
