@@ -77,7 +77,13 @@ def run_train(config: FallkitConfig, run_dir: Path) -> Path:
         # statistics from the first observations, so the first update is not on raw scales
         _update_normalizers(actor, critic, td)
     it = start
-    bar = tqdm(total=tc.iterations, initial=start, desc="train", unit="it", disable=not main_rank, dynamic_ncols=True)
+    budget_s = None if tc.max_minutes is None else 60.0 * tc.max_minutes
+    # a time budget ends the run long before the iteration budget: show the time left, not a share of iterations
+    bar_format = "{desc}: {n_fmt} it [{elapsed}, {rate_fmt}{postfix}]" if budget_s else None
+    bar = tqdm(
+        total=tc.iterations, initial=start, desc="train", unit="it", disable=not main_rank, dynamic_ncols=True,
+        bar_format=bar_format,
+    )  # fmt: skip
     try:
         while it < tc.iterations:
             t0 = time.perf_counter()
@@ -115,17 +121,20 @@ def run_train(config: FallkitConfig, run_dir: Path) -> Path:
             stats["episode/count"] = float(len(impacts))
             finished_impacts.clear()
             logger.log(it, stats)
+            elapsed = time.monotonic() - started
+            left = {} if budget_s is None else {"left": tqdm.format_interval(max(0, budget_s - elapsed))}
             bar.set_postfix(
                 steps_s=f"{stats['env_steps_per_s']:.0f}",
                 reward=f"{stats['reward']:.3f}",
                 impact_N=f"{stats.get('episode/max_impact_force', float('nan')):.0f}",
                 lr=f"{stats['learning_rate']:.1e}",
+                **left,
                 refresh=False,
             )
             bar.update(1)
 
             # ---- save ---------------------------------------------------------------
-            out_of_time = tc.max_minutes is not None and time.monotonic() - started > 60.0 * tc.max_minutes
+            out_of_time = budget_s is not None and elapsed > budget_s
             if main_rank and it % tc.checkpoint_every == 0:
                 _save(ckpt_dir / f"iter_{it:06d}.pt", config, spec, it, env, td, actor, critic, ppo, shuffle)
             if stop.requested or out_of_time:
