@@ -22,8 +22,9 @@ import time
 import torch
 
 from fallkit.api import get_robot
-from fallkit.env import EnvConfig, FallEnv, random_end_poses
-from fallkit.rewards import RewardConfig
+from fallkit.env.fall_env import FallEnv, random_end_poses
+from fallkit.config import EnvConfig
+from fallkit.config import RewardConfig
 from fallkit.sim import make_sim
 
 

@@ -4,9 +4,9 @@ Target (issue 7): 1 024 falls each (4 096 falls of 3 s) in at most 2 minutes on 
 2-core CPU, so the paper's 32 768 trials per strategy are practical.
 
 The policy is the deployed controller's architecture (3×512 ELU MLP with its
-observation normaliser, `fallkit.policy.MeanAction`): untrained unless
+observation normaliser, `fallkit.rl.policy.MeanAction`): untrained unless
 --checkpoint is given, which changes the falls but not the cost. End poses are
-random collision-free poses (`fallkit.env.random_end_poses`), so the benchmark
+random collision-free poses (`fallkit.env.fall_env.random_end_poses`), so the benchmark
 does not need a pose dataset; they cost the same as dataset poses.
 
     .venv/bin/python benchmarks/eval_throughput.py [--trials 1024] [--num-envs 4096]
@@ -38,14 +38,14 @@ def main() -> None:
     from tensordict.nn import TensorDictModule
 
     from fallkit.api import get_robot
-    from fallkit.env import FallEnv, random_end_poses
+    from fallkit.env.fall_env import FallEnv, random_end_poses
     from fallkit.config import FallkitConfig
-    from fallkit.evaluate import POLICY, chunking, draw_trials, eval_run_config, evaluate
-    from fallkit.models import GaussianPolicyNet
-    from fallkit.policy import MeanAction, load_policy
+    from fallkit.eval.evaluate import POLICY, chunking, draw_trials, eval_run_config, evaluate
+    from fallkit.rl.models import GaussianPolicyNet
+    from fallkit.rl.policy import MeanAction, load_policy
     from fallkit.sim import make_sim
-    from fallkit.strategies import STRATEGIES
-    from fallkit.train_config import TrainConfig
+    from fallkit.eval.strategies import STRATEGIES
+    from fallkit.config import TrainConfig
 
     torch.set_num_threads(args.torch_threads)
     t_setup = time.perf_counter()

@@ -1,7 +1,7 @@
 """Wall time of the end-pose generator (paper Sec. IV-C) at the paper's size.
 
 Generates the 24 000 train + 2 000 test poses of biped20 with the default
-`PosesConfig` (the `mode=poses` defaults: seed 0, 1024 worlds, 6 x 8 bins,
+`DatasetConfig` (the `mode=poses` defaults: seed 0, 1024 worlds, 6 x 8 bins,
 tolerance 0.1) on the MuJoCo CPU backend, all threads, and reports the time.
 Target: `seconds` <= 300 on the 2-core development machine.
 
@@ -32,8 +32,9 @@ import numpy as np
 import torch
 
 from fallkit.api import get_robot
-from fallkit.samplers.end_poses import EndPoseGenerator, PosesConfig, _Candidates, settle, to_dataset
-from fallkit.samplers.poses import PoseChecker
+from fallkit.poses.generator import EndPoseGenerator, _Candidates, settle, to_dataset
+from fallkit.config import DatasetConfig
+from fallkit.poses.checker import PoseChecker
 
 
 def physics_probe(spec, seconds: float = 3.0) -> float:
@@ -66,7 +67,7 @@ def main() -> None:
     torch.set_num_threads(1)  # the physics threads use the cores
 
     spec = get_robot(args.robot)
-    cfg = PosesConfig(train=args.train, test=args.test, num_worlds=args.worlds, seed=args.seed)
+    cfg = DatasetConfig(train=args.train, test=args.test, num_worlds=args.worlds, seed=args.seed)
     load_before = os.getloadavg()[0]
     probe_before = physics_probe(spec)
     start = time.perf_counter()
@@ -75,7 +76,7 @@ def main() -> None:
     probe_after = physics_probe(spec)
     load_after = os.getloadavg()[0]
     if args.out:
-        from fallkit.pose_files import save_dataset
+        from fallkit.poses.files import save_dataset
 
         save_dataset(args.out, to_dataset(spec, gen, cfg, "mujoco"))
         print(f"dataset: {args.out} ({os.path.getsize(args.out) / 1e6:.2f} MB)")

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from fallkit.api import get_robot
-from fallkit.samplers.initial_state import InitialStateSampler
+from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.sim import make_sim
 
 

@@ -2,7 +2,7 @@
 
 Measures, in one run, on the CPU backend:
   iteration   wall time of a real training iteration (collect num_envs x num_steps with
-              the policy + PPO update + normaliser update), as fallkit.train runs it
+              the policy + PPO update + normaliser update), as fallkit.rl.trainer runs it
   simulation  the same number of env steps in pure simulation: MujocoSim.step with the
               nominal pose held, no policy, no env, no TensorDicts
   update      the same PPO update (same networks, epochs, minibatches) on random data of
@@ -24,17 +24,18 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from fallkit.app import register_robots
-from fallkit.build import make_env
+from fallkit.app import register_configs
+from fallkit.env.build import make_env
 from fallkit.config import validate
-from fallkit.models import make_actor, make_critic
-from fallkit.ppo import PPO
+from fallkit.rl.models import make_actor, make_critic
+from fallkit.rl.ppo import PPO
 from fallkit.sim import make_sim
-from fallkit.train import collect, hold_prior
+from fallkit.rl.models import hold_prior
+from fallkit.rl.trainer import collect
 
 
 def config_for(args):
-    register_robots()
+    register_configs()
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
         cfg = compose(
             config_name="config",
@@ -59,10 +60,10 @@ def main() -> None:
     p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
     args = p.parse_args()
     config = config_for(args)
-    # as fallkit.train: one torch thread while MuJoCo collects, all cores for the update
+    # as fallkit.rl.trainer: one torch thread while MuJoCo collects, all cores for the update
     update_threads = config.train.torch_threads or os.cpu_count() or 1
     torch.set_num_threads(1)
-    spec = config.robot.spec()
+    spec = robot_spec(config.robot)
     tc = config.train
 
     # --- a real iteration ---------------------------------------------------------------
@@ -92,7 +93,7 @@ def main() -> None:
 
     # --- pure simulation of the same env steps -------------------------------------------
     sim = make_sim(spec, args.envs, "mujoco", threads=config.sim.threads)
-    from fallkit.samplers.initial_state import InitialStateSampler
+    from fallkit.env.samplers.initial_state import InitialStateSampler
 
     qpos, qvel = InitialStateSampler(spec).sample(args.envs, torch.Generator().manual_seed(0))
     sim.reset(torch.arange(args.envs), qpos, qvel)

@@ -21,12 +21,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from fallkit.registry import PluginError
-from fallkit.rewards.context import RewardContext
-from fallkit.robots.spec import ComponentSpec, JointSpec, RobotSpec, RobotSpecError, make_robot_spec
-from fallkit.robots.urdf import URDFError, URDFWarning, robot_from_urdf, urdf_to_mjcf
+from fallkit import registry
+from fallkit.env.rewards.context import RewardContext
+from fallkit.errors import PluginError, RobotSpecError, URDFError
+from fallkit.poses.checker import PoseChecker
+from fallkit.robots import get_robot, list_robots
+from fallkit.robots.spec import ComponentSpec, JointSpec, RobotSpec, make_robot_spec
+from fallkit.robots.urdf import URDFWarning, robot_from_urdf, urdf_to_mjcf
 from fallkit.rotations import quat_from_euler, quat_mul
-from fallkit.samplers.poses import PoseChecker
 from fallkit.sim import make_sim
 from fallkit.sim.base import BatchSim, Layout, SimState
 
@@ -60,29 +62,11 @@ __all__ = [
 ]
 
 
-def get_robot(name: str) -> RobotSpec:
-    """The RobotSpec registered under `name` in the `fallkit.robots` entry-point group."""
-    from fallkit import registry
-
-    return registry.load("fallkit.robots", name)
-
-
-def list_robots() -> list[str]:
-    """Names of all registered robots."""
-    from fallkit import registry
-
-    return registry.names("fallkit.robots")
-
-
 def get_reward_term(name: str) -> Any:
     """The reward term function registered under `name` in `fallkit.rewards`."""
-    from fallkit import registry
-
     return registry.load("fallkit.rewards", name)
 
 
 def get_sampler(name: str) -> Any:
     """The sampler factory registered under `name` in `fallkit.samplers`."""
-    from fallkit import registry
-
     return registry.load("fallkit.samplers", name)

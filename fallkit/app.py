@@ -21,26 +21,22 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from fallkit import registry
-from fallkit.checkpoint import CheckpointError
-from fallkit.config import ConfigError, FallkitConfig, validate
-from fallkit.registry import PluginError
-from fallkit.render import RenderError
-from fallkit.robots.spec import RobotSpecError
+from fallkit.config import FallkitConfig, defaults, validate
+from fallkit.errors import FallkitError, PluginError
+from fallkit.robots import GROUP as ROBOTS, get_robot
 
 log = logging.getLogger("fallkit")
 
-# mode -> "module:function(config, run_dir)"; imported only when chosen
+# mode -> "module:function(config, run_dir)"; imported only when chosen, so `mode=list`
+# does not pay for TorchRL and MuJoCo's renderer
 MODES: dict[str, str] = {
-    "train": "fallkit.train:run_train",
-    "export": "fallkit.export:run_export",
+    "train": "fallkit.app:train",
+    "export": "fallkit.rl.export:run_export",
     "list": "fallkit.app:list_plugins",
-    "eval": "fallkit.evaluate:run_eval",
-    "render": "fallkit.render:run_render",
-    "poses": "fallkit.samplers.end_poses:run_poses",
+    "eval": "fallkit.eval.evaluate:run_eval",
+    "render": "fallkit.eval.render:run_render",
+    "poses": "fallkit.eval.dataset_report:run_poses",
 }
-
-# Errors that are the user's to fix: one line, exit status 2, no traceback.
-USER_ERRORS = (ConfigError, PluginError, RobotSpecError, CheckpointError, RenderError, FileNotFoundError)
 
 
 def fail(message: str) -> None:
@@ -48,21 +44,23 @@ def fail(message: str) -> None:
     sys.exit(2)
 
 
-def register_robots() -> None:
-    """One ConfigStore node per registered robot: its name and default sensitivity weights."""
+def register_configs() -> None:
+    """Fill Hydra's ConfigStore: every default (`fallkit_defaults`, from the pydantic models)
+    and one `robot/<name>` node per registered robot with its default sensitivity weights."""
     cs = ConfigStore.instance()
-    for name in registry.names("fallkit.robots"):
+    cs.store(name="fallkit_defaults", node=defaults())
+    for name in registry.names(ROBOTS):
         try:
-            spec = registry.load("fallkit.robots", name)
+            spec = get_robot(name)
             weights = {c: comp.weight for c, comp in spec.components.items()}
-        except (PluginError, RobotSpecError):
+        except FallkitError:
             weights = {}  # selecting it reports the plugin's error
         cs.store(group="robot", name=name, node={"name": name, "sensitivity": weights})
 
 
 def check_robot_overrides(argv: list[str]) -> None:
     """`robot=nosuch` is one clear line naming the robots that exist, before Hydra starts."""
-    known = registry.names("fallkit.robots")
+    known = registry.names(ROBOTS)
     for arg in argv:
         m = re.fullmatch(r"\+{0,2}robot=(.+)", arg)
         if not m or re.search(r"[(){}\[\]*$]", m.group(1)):
@@ -83,7 +81,7 @@ def run(cfg: DictConfig) -> Any:
         module, func = MODES[config.mode].split(":")
         handler: Callable[[FallkitConfig, Path], Any] = getattr(importlib.import_module(module), func)
         return handler(config, run_dir)
-    except USER_ERRORS as exc:
+    except FallkitError as exc:
         fail(str(exc))
 
 
@@ -94,11 +92,33 @@ def _hydra_main(cfg: DictConfig) -> Any:
 
 def main() -> None:
     try:
-        register_robots()
+        register_configs()
     except PluginError as exc:  # e.g. a robot name registered twice
         fail(str(exc))
     check_robot_overrides(sys.argv[1:])
     _hydra_main()
+
+
+# ---- mode=train ----------------------------------------------------------------------
+
+
+def train(config: FallkitConfig, run_dir: Path) -> Path:
+    """`mode=train`: PPO (fallkit.rl.trainer), its learning curve, then the final policy
+    against the standard strategies on falls it never trained on."""
+    from fallkit.eval.evaluate import evaluate_checkpoint
+    from fallkit.eval.plots import learning_curve
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(config, run_dir)
+    last = trainer.run()
+    if not trainer.main_rank:
+        return last
+    if trainer.iteration > trainer.start:
+        title = f"{trainer.spec.name}: training"
+        print(f"learning curve: {learning_curve(run_dir / 'metrics.csv', run_dir / 'learning_curve.png', title)}")
+    if config.train.evaluate and not trainer.stopped:
+        evaluate_checkpoint(config, run_dir, last)
+    return last
 
 
 # ---- mode=list ----------------------------------------------------------------------
@@ -118,7 +138,7 @@ def list_plugins(config: FallkitConfig, run_dir: Path) -> None:
                 continue
             entry = unique[name]
             try:
-                registry.load(group, name)
+                get_robot(name) if group == ROBOTS else registry.load(group, name)
                 status = ""
             except PluginError as exc:
                 broken += 1

@@ -21,11 +21,11 @@ from functools import cache
 from importlib.metadata import EntryPoint, distributions
 from typing import Any, Callable
 
+from fallkit.errors import PluginError
+
 GROUPS = ("fallkit.robots", "fallkit.rewards", "fallkit.samplers")
 
 
-class PluginError(RuntimeError):
-    """A plugin that cannot be used: import failure, duplicate name or invalid value."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,8 @@ class Entry:
 
 
 # Check of a loaded value, per group: returns (the value to use, an error text or None).
+# The package that owns a group's type registers its check (fallkit.robots for RobotSpec),
+# so this module, below everything else, imports none of them.
 Check = Callable[[Any], tuple[Any, "str | None"]]
 _VALIDATORS: dict[str, Check] = {}
 
@@ -132,16 +134,6 @@ def _duplicate_message(group: str, name: str, es: list[Entry]) -> str:
 
 
 # ---- the checks of each group -------------------------------------------------------
-
-
-@validator("fallkit.robots")
-def _check_robot(value: Any) -> tuple[Any, str | None]:
-    from fallkit.robots.spec import RobotSpec
-
-    spec = value() if callable(value) and not isinstance(value, RobotSpec) else value
-    if not isinstance(spec, RobotSpec):
-        return value, f"expected a RobotSpec (or a callable returning one), got {type(spec).__name__}"
-    return spec, None
 
 
 @validator("fallkit.rewards")

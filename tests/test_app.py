@@ -13,13 +13,14 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from fallkit.app import register_robots
+from fallkit.app import register_configs
 from fallkit.config import ConfigError, validate
+from fallkit.robots import robot_spec
 
 
 def composed(*overrides: str):
     GlobalHydra.instance().clear()
-    register_robots()
+    register_configs()
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
         cfg = compose(config_name="config", overrides=list(overrides))
     return OmegaConf.to_container(cfg, resolve=False)
@@ -42,7 +43,7 @@ def test_defaults_compose_and_validate():
 def test_robot_group_comes_from_the_registry():
     raw = composed("robot=biped20_battery", "robot.sensitivity.battery=7.5")
     raw.pop("hydra", None)
-    spec = validate(raw).robot.spec()
+    spec = robot_spec(validate(raw).robot)
     assert spec.components["battery"].weight == 7.5 and spec.components["head"].weight == 4.0
 
 
@@ -59,7 +60,7 @@ def test_wrong_values_are_one_clear_error(override, message):
     raw = composed(override)
     raw.pop("hydra", None)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
-        validate(raw).robot.spec()
+        robot_spec(validate(raw).robot)
 
 
 def test_cli_unknown_robot_is_one_line(tmp_path):

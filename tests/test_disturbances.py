@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from fallkit import registry
-from fallkit.samplers.disturbances import DisturbanceConfig, Disturbances
+from fallkit.env.samplers.disturbances import Disturbances
+from fallkit.config import DisturbanceConfig
 
 DT = 0.02
 

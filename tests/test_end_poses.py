@@ -12,18 +12,17 @@ import pytest
 import torch
 
 from fallkit.rotations import gravity_in_frame, quat_rotate
-from fallkit.samplers.end_poses import (
+from fallkit.config import DatasetConfig, SettleConfig
+from fallkit.poses.generator import (
     EndPoseGenerator,
     OrientationBins,
-    PosesConfig,
-    SettleConfig,
     _Candidates,
     sample_root_quat,
     select_uniform,
     settle,
     uniformity,
 )
-from fallkit.samplers.poses import PoseChecker
+from fallkit.poses.checker import PoseChecker
 from fallkit.sim.base import Layout
 
 # A small run that still has to rebalance: 8 coarse bins, so it converges in a few hundred drops.
@@ -32,7 +31,7 @@ SMALL = dict(train=120, test=12, num_worlds=96, bands=2, sectors=4, tolerance=0.
 
 @pytest.fixture(scope="module")
 def small_run(biped):
-    return EndPoseGenerator(biped, PosesConfig(**SMALL)).run(progress=False)
+    return EndPoseGenerator(biped, DatasetConfig(**SMALL)).run(progress=False)
 
 
 def _tilt_deg(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
@@ -165,30 +164,20 @@ def test_small_run_is_rebalanced_uniform_within_tolerance(small_run, biped):
 
 def test_same_seed_same_dataset_other_seed_other_dataset(small_run, biped):
     # one thread instead of all: each world is stepped by one thread, so the result is the same
-    again = EndPoseGenerator(biped, PosesConfig(**SMALL), threads=1).run(progress=False)
+    again = EndPoseGenerator(biped, DatasetConfig(**SMALL), threads=1).run(progress=False)
     assert torch.equal(again.joint_pos, small_run.joint_pos)
     assert torch.equal(again.root_quat, small_run.root_quat)
     assert (again.split == small_run.split).all()
-    other = EndPoseGenerator(biped, PosesConfig(**{**SMALL, "seed": 4, "train": 30, "test": 0})).run(progress=False)
+    other = EndPoseGenerator(biped, DatasetConfig(**{**SMALL, "seed": 4, "train": 30, "test": 0})).run(progress=False)
     assert not torch.equal(other.joint_pos[:30], small_run.joint_pos[:30])
-
-
-def test_sampler_plugin_is_registered():
-    from fallkit import registry
-
-    factory = registry.load("fallkit.samplers", "end_poses")
-    from fallkit.api import get_robot
-
-    gen = factory(get_robot("biped20"), train=10, test=0)
-    assert isinstance(gen, EndPoseGenerator) and gen.config.train == 10
 
 
 @pytest.mark.slow
 def test_mode_poses_writes_dataset_sheets_and_histogram(tmp_path, biped):
     out = tmp_path / "p.npz"
     cmd = [
-        sys.executable, "-m", "fallkit", "mode=poses", "robot=biped20", "poses.train=40", "poses.test=4",
-        "poses.num_worlds=48", "poses.bands=2", "poses.sectors=4", "poses.sheet=4", f"poses.out={out}",
+        sys.executable, "-m", "fallkit", "mode=poses", "robot=biped20", "dataset.train=40", "dataset.test=4",
+        "dataset.num_worlds=48", "dataset.bands=2", "dataset.sectors=4", "dataset.sheet=4", f"dataset.out={out}",
         f"hydra.run.dir={tmp_path / 'run'}",
     ]  # fmt: skip
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -202,8 +191,8 @@ def test_mode_poses_writes_dataset_sheets_and_histogram(tmp_path, biped):
 
     sheet = np.asarray(Image.open(tmp_path / "run" / "poses_artist.png"))
     assert sheet.shape[0] > 300 and sheet.std() > 10  # ten rendered poses, not a blank image
-    from fallkit.pose_files import load_end_poses
+    from fallkit.poses.files import load_end_poses
 
     assert len(load_end_poses(out, biped, "train")) == 40 and len(load_end_poses(out, biped, "test")) == 4
-    bad = subprocess.run([*cmd[:3], "mode=poses", "poses.train=0"], capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "poses.train" in bad.stderr
+    bad = subprocess.run([*cmd[:3], "mode=poses", "dataset.train=0"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "dataset.train" in bad.stderr

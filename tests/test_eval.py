@@ -14,11 +14,11 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from fallkit import evaluate as ev
+from fallkit.eval import evaluate as ev
 from fallkit.config import ConfigError, FallkitConfig
-from fallkit.env import FallEnv, random_end_poses
+from fallkit.env.fall_env import FallEnv, random_end_poses
 from fallkit.sim import make_sim
-from fallkit.strategies import STRATEGIES
+from fallkit.eval.strategies import STRATEGIES
 
 STEPS = 10  # 0.2 s falls: enough for the strategies to diverge, cheap on 2 cores
 SEED = 777
@@ -163,9 +163,9 @@ def test_cli_evaluates_a_trained_policy_against_the_strategies(tmp_path):
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    from fallkit.app import register_robots
+    from fallkit.app import register_configs
     from fallkit.config import validate
-    from fallkit.train import run_train
+    from fallkit.rl.trainer import Trainer
 
     tiny = [
         "train=quick", "train.iterations=1", "train.num_steps=4", "train.actor_hidden=[16,16]",
@@ -173,12 +173,12 @@ def test_cli_evaluates_a_trained_policy_against_the_strategies(tmp_path):
         "env.poses=artist", "env.episode_length=0.3", "reward.blend_time=0.2",
     ]  # fmt: skip
     GlobalHydra.instance().clear()
-    register_robots()
+    register_configs()
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
         raw = OmegaConf.to_container(compose(config_name="config", overrides=tiny), resolve=False)
     raw.pop("hydra", None)
     trained = validate(raw)
-    run_train(trained, tmp_path / "train")
+    Trainer(trained, tmp_path / "train").run()
 
     r = _cli(f"checkpoint={tmp_path / 'train'}", "mode=eval", "eval.trials=3", "sim.num_envs=8", "hydra.run.dir=eval", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]

@@ -11,8 +11,9 @@ import torch
 
 from fallkit import registry
 from fallkit.rotations import quat_from_euler, quat_mul, quat_rotate
-from fallkit.samplers.initial_state import InitialStateConfig, InitialStateSampler
-from fallkit.samplers.poses import PoseChecker
+from fallkit.env.samplers.initial_state import InitialStateSampler
+from fallkit.config import InitialStateConfig
+from fallkit.poses.checker import PoseChecker
 
 N = 256
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit import metrics
+from fallkit.eval import metrics
 from fallkit.rotations import geodesic_angle, quat_from_euler, quat_mul
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit.pose_files import (
+from fallkit.poses.files import (
     FORMAT,
     PoseDataset,
     PoseFileError,
@@ -26,7 +26,7 @@ from fallkit.pose_files import (
     save_dataset,
 )
 from fallkit.rotations import gravity_in_frame
-from fallkit.samplers.end_pose_set import EndPoseSet
+from fallkit.poses.end_pose_set import EndPoseSet
 
 
 def _dataset(spec, n: int = 200, test: int = 20, seed: int = 0) -> PoseDataset:

@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from fallkit.checkpoint import load_checkpoint
-from fallkit.pose_files import load_end_poses
+from fallkit.rl.checkpoint import load_checkpoint
+from fallkit.poses.files import load_end_poses
 
 pytest.importorskip("fallkit_go1", reason="install plugins/fallkit-go1 (scripts/setup.sh does)")
 
@@ -25,8 +25,8 @@ def test_go1_end_poses_then_training(tmp_path):
         return r
 
     # the end-pose generator runs on the quadruped unchanged
-    fallkit("mode=poses", "robot=go1", "poses.train=48", "poses.test=16", "poses.num_worlds=64",
-            "poses.out=go1_poses.npz", "poses.artist=null", "poses.sheet=8", "hydra.run.dir=poses")  # fmt: skip
+    fallkit("mode=poses", "robot=go1", "dataset.train=48", "dataset.test=16", "dataset.num_worlds=64",
+            "dataset.out=go1_poses.npz", "dataset.artist=null", "dataset.sheet=8", "hydra.run.dir=poses")  # fmt: skip
     from fallkit.api import get_robot
 
     spec = get_robot("go1")

@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit import evaluate as ev
+from fallkit.eval import evaluate as ev
 from fallkit.config import ConfigError, FallkitConfig
-from fallkit.env import FallEnv, random_end_poses
-from fallkit.render import FallPainter, RenderConfig, frame_stride, render_rollout, write_video
-from fallkit.samplers.poses import PoseChecker
+from fallkit.env.fall_env import FallEnv, random_end_poses
+from fallkit.eval.render import FallPainter, frame_stride, render_rollout, write_video
+from fallkit.config import RenderConfig
+from fallkit.poses.checker import PoseChecker
 from fallkit.sim import make_sim
-from fallkit.strategies import STRATEGIES
+from fallkit.eval.strategies import STRATEGIES
 
 STEPS = 6
 

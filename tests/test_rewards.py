@@ -10,10 +10,11 @@ import torch
 
 from fallkit import registry
 from fallkit.config import ConfigError, validate
-from fallkit.rewards import BUILTIN_TERMS, RewardConfig, RewardContext, RewardSum
-from fallkit.rewards.impact import impact, root_acc
-from fallkit.rewards.regularization import action_acc, action_rate, joint_acc, offset, torques
-from fallkit.rewards.tracking import blend, joints, orientation
+from fallkit.env.rewards import RewardContext, RewardSum
+from fallkit.config import BUILTIN_TERMS, RewardConfig
+from fallkit.env.rewards.impact import impact, root_acc
+from fallkit.env.rewards.regularization import action_acc, action_rate, joint_acc, offset, torques
+from fallkit.env.rewards.tracking import blend, joints, orientation
 from fallkit.rotations import quat_from_euler
 from fallkit.sim.base import SimState
 

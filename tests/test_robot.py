@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fallkit.api import ComponentSpec, JointSpec, RobotSpecError, get_robot, make_robot_spec
-from fallkit.samplers.poses import PoseChecker
+from fallkit.poses.checker import PoseChecker
 
 JOINTS = [
     "neck_yaw", "neck_pitch",

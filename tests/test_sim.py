@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit.samplers.initial_state import InitialStateSampler
-from fallkit.samplers.poses import PoseChecker
+from fallkit.env.samplers.initial_state import InitialStateSampler
+from fallkit.poses.checker import PoseChecker
 from fallkit.sim import make_sim
 
 G = 9.81

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from fallkit.config import ConfigError
-from fallkit.samplers.initial_state import InitialStateSampler
+from fallkit.errors import ConfigError, SimBufferError
+from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.sim import make_sim
 
 G = 9.81
@@ -106,7 +106,7 @@ def test_buffer_overflow_is_a_clear_error(biped):
     qpos, qvel = InitialStateSampler(biped).sample(2, torch.Generator().manual_seed(0))
     sim = make_sim(biped, 2, "warp", device="cpu", nconmax=1)
     sim.reset(torch.arange(2), qpos, qvel)
-    with pytest.raises(ConfigError, match=r"raise sim\.nconmax"):
+    with pytest.raises(SimBufferError, match=r"raise sim\.nconmax"):
         for _ in range(50):
             sim.step(sim.state.joint_pos)
 

@@ -16,8 +16,8 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from fallkit.app import register_robots
-from fallkit.checkpoint import load_checkpoint
+from fallkit.app import register_configs
+from fallkit.rl.checkpoint import load_checkpoint
 from fallkit.config import validate
 
 TINY = [
@@ -37,7 +37,7 @@ TINY = [
 
 def tiny_config(*overrides: str):
     GlobalHydra.instance().clear()
-    register_robots()
+    register_configs()
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
         cfg = compose(config_name="config", overrides=[*TINY, *overrides])
     raw = OmegaConf.to_container(cfg, resolve=False)
@@ -46,9 +46,9 @@ def tiny_config(*overrides: str):
 
 
 def train(run_dir: Path, *overrides: str) -> Path:
-    from fallkit.train import run_train
+    from fallkit.rl.trainer import Trainer
 
-    return run_train(tiny_config(*overrides), run_dir)
+    return Trainer(tiny_config(*overrides), run_dir).run()
 
 
 def actor_of(path: Path) -> dict[str, torch.Tensor]:
@@ -82,7 +82,7 @@ def test_resume_continues_exactly(tmp_path):
 
 
 def test_resume_from_corrupt_checkpoint_is_a_clear_error(tmp_path):
-    from fallkit.checkpoint import CheckpointError
+    from fallkit.rl.checkpoint import CheckpointError
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"\x00" * 100)
@@ -152,8 +152,8 @@ def test_export_onnx_reproduces_the_policy(tmp_path):
     import numpy as np
     import onnxruntime
 
-    from fallkit.export import run_export
-    from fallkit.policy import load_policy
+    from fallkit.rl.export import run_export
+    from fallkit.rl.policy import load_policy
 
     train(tmp_path / "run", "train.iterations=1")
     out = tmp_path / "export"

@@ -21,9 +21,9 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from fallkit.errors import RobotSpecError
 
-class RobotSpecError(ValueError):
-    """A robot description that cannot be used; the message names robot and field."""
+
 
 
 class JointSpec(BaseModel):

@@ -53,15 +53,14 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from fallkit.robots.spec import ComponentSpec, JointSpec, RobotSpec, RobotSpecError, make_robot_spec
+from fallkit.errors import RobotSpecError, URDFError
+from fallkit.robots.spec import ComponentSpec, JointSpec, RobotSpec, make_robot_spec
 
 READABLE_MESHES = (".stl", ".obj", ".msh")  # what MuJoCo's compiler reads without plugins
 ACTUATED_TYPES = ("revolute", "continuous")  # URDF joints that become MuJoCo hinges
 _FORMAT = 1  # bump when the conversion changes, so cached folders are not reused
 
 
-class URDFError(RobotSpecError):
-    """A URDF that cannot be turned into a robot; the message names file and element."""
 
 
 class URDFWarning(UserWarning):

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+from fallkit.config.sim import SimConfig
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import BatchSim, Layout, SimState
 
-__all__ = ["BatchSim", "Layout", "SimState", "make_sim", "BACKENDS"]
+__all__ = ["BatchSim", "Layout", "SimState", "make_sim", "sim_options", "BACKENDS"]
 
 BACKENDS = ("mujoco", "warp")
 
@@ -25,3 +28,13 @@ def make_sim(spec: RobotSpec, num_worlds: int, backend: str = "mujoco", **option
 
         return WarpSim(spec, num_worlds, **options)
     raise ValueError(f"sim.backend: unknown backend '{backend}'; choose one of {', '.join(BACKENDS)}")
+
+
+def sim_options(config: SimConfig) -> dict[str, Any]:
+    """make_sim's options from a run's `sim:` section (each backend's own keys only)."""
+    options: dict[str, Any] = {"max_speed": config.max_speed}
+    if config.backend == "mujoco":
+        options["threads"] = config.threads
+    else:
+        options.update(device=config.device, nconmax=config.nconmax, njmax=config.njmax)
+    return options

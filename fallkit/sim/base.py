@@ -28,10 +28,6 @@ import torch
 from fallkit.robots.spec import RobotSpec
 
 
-class SimulationUnstable(RuntimeError):
-    """Raised only when instability cannot be recovered (e.g. a reset state is itself invalid)."""
-
-
 @dataclass
 class SimState:
     """State of all worlds after the last reset or step; tensors on the sim's device."""

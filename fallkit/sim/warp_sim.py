@@ -41,7 +41,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from fallkit.config import ConfigError
+from fallkit.errors import ConfigError, SimBufferError
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import Layout, SimState
 
@@ -384,7 +384,7 @@ class WarpSim:
         flags = torch.stack([(self._overflow & self._buffer_bits).amax().long(), unstable.sum()]).tolist()
         if flags[0]:
             advice = _overflow_advice(self._or_bits() & self._buffer_bits, self.nconmax, self.njmax)
-            raise ConfigError(
+            raise SimBufferError(
                 f"sim: mujoco_warp buffer overflow ({advice}); contacts were dropped, so this step's physics is wrong"
             )
         state = self._read(unstable)

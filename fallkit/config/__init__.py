@@ -1,0 +1,77 @@
+"""Typed configuration: every section of the composed Hydra config as pydantic models.
+
+One module per section (`robot`, `sim`, `env`, `reward`, `train`, `eval`, `render`,
+`dataset`), holding only models: they are the one source of every default. Hydra's
+`conf/config.yaml` names the group defaults and the `hydra:` block; the values come
+from `defaults()` (stored in Hydra's ConfigStore by the app), so no value is written
+twice. `validate()` turns a composed config into `FallkitConfig`, so a wrong value is
+one clear line naming the key before any work starts.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from fallkit.config.dataset import DatasetConfig, SettleConfig
+from fallkit.config.env import DisturbanceConfig, DisturbanceRange, EnvConfig, InitialStateConfig, ObservationNoise
+from fallkit.config.eval import EvalConfig
+from fallkit.config.render import RenderConfig
+from fallkit.config.reward import BUILTIN_TERMS, RewardConfig
+from fallkit.config.robot import RobotConfig
+from fallkit.config.sim import SimConfig
+from fallkit.config.train import PPOConfig, TrainConfig
+from fallkit.errors import ConfigError
+
+__all__ = [
+    "BUILTIN_TERMS", "ConfigError", "DatasetConfig", "DisturbanceConfig", "DisturbanceRange", "EnvConfig",
+    "EvalConfig", "FallkitConfig", "InitialStateConfig", "Mode", "ObservationNoise", "PPOConfig", "RenderConfig",
+    "RewardConfig", "RobotConfig", "SettleConfig", "SimConfig", "TrainConfig", "defaults", "validate",
+]  # fmt: skip
+
+Mode = Literal["train", "list", "poses", "eval", "render", "export"]
+
+
+class FallkitConfig(BaseModel):
+    """The whole validated configuration of one run."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Mode = "train"
+    seed: int = 0
+    checkpoint: str | None = Field(None, description="a trained policy (file or run dir) for eval/render/export")
+    resume: str | None = Field(None, description="continue training from this checkpoint or run dir")
+    robot: RobotConfig
+    sim: SimConfig = Field(default_factory=SimConfig)
+    env: EnvConfig = Field(default_factory=EnvConfig)
+    reward: RewardConfig = Field(default_factory=RewardConfig)
+    eval: EvalConfig = Field(default_factory=EvalConfig)
+    render: RenderConfig = Field(default_factory=RenderConfig)
+    dataset: DatasetConfig = Field(default_factory=DatasetConfig)
+    train: TrainConfig = Field(default_factory=TrainConfig)
+
+
+def validate(raw: dict[str, Any]) -> FallkitConfig:
+    """Validate a resolved config dict; raise ConfigError naming every bad key."""
+    try:
+        return FallkitConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError("; ".join(_describe(e) for e in exc.errors())) from None
+
+
+def _describe(error: dict[str, Any]) -> str:
+    key = ".".join(str(p) for p in error["loc"])
+    got = error.get("input")
+    shown = "" if isinstance(got, dict) else f" (got {got!r})"
+    msg = error["msg"].removeprefix("Value error, ")  # our validators' own words need no prefix
+    return f"{key}: {msg}{shown}"
+
+
+def defaults() -> dict[str, Any]:
+    """Every default of FallkitConfig as plain data, without `robot` (Hydra's robot group fills it).
+
+    The app stores this in Hydra's ConfigStore as the node `fallkit_defaults`, which
+    `conf/config.yaml` lists first: the models are the one place a default is written.
+    """
+    return FallkitConfig(robot=RobotConfig(name="-")).model_dump(mode="json", exclude={"robot"})

@@ -1,0 +1,109 @@
+"""`env:` — episode, action, observation noise, initial states (Table II) and disturbances (Table IV).
+
+Kept apart from `fallkit.env` so that validating a config does not import TorchRL.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from fallkit import registry
+
+_SAMPLER_ROLES = ("initial_state", "disturbances")
+
+
+class ObservationNoise(BaseModel):
+    """Std of the Gaussian noise on the actor's measured inputs (legged_gym's levels)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scale: float = Field(1.0, ge=0, description="multiplies every std below; 0 switches noise off")
+    root_quat: float = Field(0.05, ge=0, description="per quaternion component")
+    root_lin_vel: float = Field(0.1, ge=0, description="[m/s]")
+    root_ang_vel: float = Field(0.2, ge=0, description="[rad/s]")
+    joint_pos: float = Field(0.01, ge=0, description="[rad]")
+    joint_vel: float = Field(1.5, ge=0, description="[rad/s]")
+
+
+class InitialStateConfig(BaseModel):
+    """Ranges of paper Table II (half-widths of uniform distributions)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    roll_pitch_deg: float = Field(30.0, ge=0, le=180)
+    random_yaw: bool = True
+    root_lin_vel: float = Field(2.0, ge=0, description="[m/s] per axis, world frame")
+    root_ang_vel: float = Field(0.5, ge=0, description="[rad/s] per axis, root frame")
+    joint_vel: float = Field(0.5, ge=0, description="[rad/s] per joint")
+    joint_spread: float = Field(
+        1.0, gt=0, le=1.0, description="fraction of each joint's range around the nominal pose (1 = full range)"
+    )
+    clearance: float = Field(0.005, ge=0, description="[m] gap between the lowest geom and the floor")
+
+
+class DisturbanceRange(BaseModel):
+    """Magnitudes and durations for the bodies of one role."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    force: float = Field(5.0, ge=0, description="[N] max |force| per axis")
+    torque: float = Field(0.25, ge=0, description="[N·m] max |torque| per axis")
+    on_time: tuple[float, float] = Field((0.25, 2.0), description="[s] range of an 'on' period")
+    off_time: tuple[float, float] = Field((1.0, 3.0), description="[s] range of an 'off' period")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "DisturbanceRange":
+        for name in ("on_time", "off_time"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name}: need 0 < min <= max, got [{lo}, {hi}]")
+        return self
+
+
+def _table_iv() -> dict[str, DisturbanceRange]:
+    short, long = DisturbanceRange(), DisturbanceRange(on_time=(2.0, 10.0))
+    return {"hips": short, "feet": short, "elbows": short, "pelvis": long, "head": long}
+
+
+class DisturbanceConfig(BaseModel):
+    """Paper Table IV by role."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = True
+    roles: dict[str, DisturbanceRange] = Field(default_factory=_table_iv)
+
+
+class EnvConfig(BaseModel):
+    """Episode, action and observation settings of FallEnv."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    episode_length: float = Field(3.0, gt=0, description="T [s]: every episode is truncated after T")
+    action_scale: float = Field(0.5, gt=0, description="[rad] per action unit: setpoint = nominal + action_scale·a")
+    clip_setpoints: bool = Field(True, description="clip setpoints to the joint limits")
+    poses: str = Field(
+        "default", description="end-pose source: 'default' (the robot's dataset), a .npz dataset or a .yaml pose file"
+    )
+    pose_fraction: float = Field(
+        1.0, gt=0, le=1, description="fraction of the training split used (dataset-size ablation)"
+    )
+    noise: ObservationNoise = Field(default_factory=ObservationNoise)
+    initial_state: InitialStateConfig = Field(default_factory=InitialStateConfig)
+    disturbances: DisturbanceConfig = Field(default_factory=DisturbanceConfig)
+    samplers: dict[str, str] = Field(
+        default_factory=lambda: {r: r for r in _SAMPLER_ROLES},
+        description="sampler role -> registered sampler (group fallkit.samplers)",
+    )
+
+    @field_validator("samplers")
+    @classmethod
+    def _roles(cls, value: dict[str, str]) -> dict[str, str]:
+        unknown = sorted(set(value) - set(_SAMPLER_ROLES))
+        if unknown:
+            raise ValueError(f"unknown sampler roles {unknown}; roles are {list(_SAMPLER_ROLES)}")
+        registered = registry.names("fallkit.samplers")
+        for role, name in value.items():
+            if name not in registered:
+                raise ValueError(f"{role}: '{name}' is not a registered sampler ({', '.join(registered) or 'none'})")
+        return {**{r: r for r in _SAMPLER_ROLES}, **value}

@@ -1,0 +1,21 @@
+"""`sim:` — simulator backend and size."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SimConfig(BaseModel):
+    """Simulator backend and size."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    backend: Literal["mujoco", "warp"] = "mujoco"
+    num_envs: int = Field(256, gt=0, description="parallel worlds")
+    threads: int = Field(0, ge=0, description="mujoco backend: CPU threads, 0 = all cores")
+    device: str = Field("cpu", description="warp backend: auto | cpu | cuda:N")
+    nconmax: int | None = Field(None, gt=0, description="warp backend: contacts per world, pooled over worlds (None = from the robot)")
+    njmax: int | None = Field(None, gt=0, description="warp backend: constraint rows per world (None = from the robot)")
+    max_speed: float = Field(200.0, gt=0, description="[m/s or rad/s] above this a world counts as unstable")

@@ -1,0 +1,44 @@
+"""Training configuration (paper Table III defaults; `train=quick` for a 2-core CPU)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class PPOConfig(BaseModel):
+    """Table III defaults; `learning_rate` is the starting point of the adaptive rule."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    num_minibatches: int = Field(4, gt=0)
+    epochs: int = Field(5, gt=0)
+    clip: float = Field(0.2, gt=0)
+    entropy_coef: float = Field(0.0, ge=0)
+    gamma: float = Field(0.99, gt=0, le=1)
+    lam: float = Field(0.95, ge=0, le=1)
+    desired_kl: float | None = Field(0.01, gt=0, description="null = fixed learning rate")
+    learning_rate: float = Field(1e-3, gt=0)
+    lr_min: float = Field(1e-5, gt=0)
+    lr_max: float = Field(1e-2, gt=0)
+    max_grad_norm: float = Field(1.0, gt=0)
+    value_coef: float = Field(1.0, ge=0)
+
+
+class TrainConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    iterations: int = Field(75_000, gt=0)
+    num_steps: int = Field(24, gt=0, description="policy steps per env per iteration")
+    max_minutes: float | None = Field(None, gt=0, description="wall-clock budget; the run checkpoints and stops")
+    actor_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
+    critic_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
+    init_noise_std: float = Field(1.0, gt=0, description="initial policy std, in action units")
+    hold_prior: bool = Field(
+        True, description="policy mean = MLP + the action holding the measured joint angles (fallkit.rl.models.HoldPrior)"
+    )
+    ppo: PPOConfig = Field(default_factory=PPOConfig)
+    checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
+    evaluate: bool = Field(True, description="evaluate the final policy into the run dir")
+    torch_threads: int = Field(
+        0, ge=0, description="torch CPU threads of the PPO update (0 = all cores); collection uses one beside MuJoCo's"
+    )

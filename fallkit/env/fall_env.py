@@ -1,0 +1,370 @@
+"""FallEnv: the batched falling environment as a TorchRL `EnvBase` (paper Sec. IV-A, IV-B, IV-D, V-A).
+
+One FallEnv drives all N worlds of a `BatchSim` (`batch_size=[N]`, on the
+simulator's device). Each episode starts from a random falling state
+(`InitialStateSampler`, Table II) with an end pose drawn uniformly from an
+`EndPoseSet`, runs for a fixed time T (truncation only: a fall has no failure
+state) and is then reset per world through TorchRL's `"_reset"` mask.
+
+Keys (TensorDict):
+  "action"         [N, J]  joint setpoint = nominal pose + action_scale · action [rad],
+                           clipped to the joint limits; PD at physics rate
+  "policy"         [N, Da] actor observation (fallkit.env.observations), noisy
+  "critic"         [N, Dc] privileged critic observation, noiseless
+  "contact_force"  [N, C]  per component, the largest |f_c| over the physics substeps
+                           of the step [N]: for metrics, not an input
+  "reward"         [N, 1]  policy_dt · Σ_k weight_k · term_k (fallkit.env.rewards)
+  "done", "terminated", "truncated" [N, 1]; terminated is always False
+Per-term reward means: `env.pop_reward_terms()` / `env.reward_terms_mean`.
+
+Goal (paper Sec. IV-A): the end pose's root orientation with its heading
+removed (`tilt_quat`) is the target in the path frame; the world-frame target
+at time t is that tilt turned to the robot's current heading, so the policy is
+free to fall in any direction and the orientation reward compares tilt only.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from fallkit import registry
+from fallkit.config import EnvConfig
+from fallkit.env.observations import (
+    actor_layout,
+    actor_observation,
+    critic_layout,
+    critic_observation,
+    noise_std,
+    path_frame,
+    planar_motion,
+)
+from fallkit.env.rewards.context import RewardContext, RewardSum
+from fallkit.config import RewardConfig
+from fallkit.env.rewards.tracking import blend
+from fallkit.robots.spec import RobotSpec
+from fallkit.rotations import quat_from_euler, tilt_quat
+from fallkit.poses.end_pose_set import EndPoseSet
+from fallkit.sim.base import BatchSim
+
+log = logging.getLogger(__name__)
+
+__all__ = ["EnvConfig", "FallEnv", "random_end_poses"]
+
+
+class FallEnv(EnvBase):
+    """Soft, goal-directed falling of N worlds (see the module docstring)."""
+
+    def __init__(
+        self,
+        spec: RobotSpec,
+        env_cfg: EnvConfig,
+        reward_cfg: RewardConfig,
+        end_poses: EndPoseSet,
+        sim: BatchSim,
+        seed: int = 0,
+    ):
+        n = sim.num_worlds
+        super().__init__(device=sim.device, batch_size=[n])
+        _check_inputs(spec, env_cfg, reward_cfg, end_poses, sim)
+        dev = self.device
+        self.spec = spec
+        self.env_cfg = env_cfg
+        self.reward_cfg = reward_cfg
+        self.sim = sim
+        self.end_poses = end_poses.to(dev)
+        self.num_envs = n
+        self.dt = spec.policy_dt
+        self.max_steps = max(1, round(env_cfg.episode_length / self.dt))
+        self.action_scale = env_cfg.action_scale
+
+        # seeded generators owned by the env: CPU for the MuJoCo-based initial-state
+        # sampler, the sim's device for everything drawn per step
+        self._cpu_gen = torch.Generator()
+        self._gen = torch.Generator(device=dev)
+        self._set_seed(seed)
+
+        load = registry.load
+        self.initial_states = load("fallkit.samplers", env_cfg.samplers["initial_state"])(
+            spec, **env_cfg.initial_state.model_dump()
+        )
+        dist = env_cfg.disturbances
+        self.disturbances = None
+        if dist.enabled:
+            self.disturbances = load("fallkit.samplers", env_cfg.samplers["disturbances"])(
+                spec, n, dev, **dist.model_dump(exclude={"enabled"})
+            )
+            if self.disturbances.body_ids.numel() == 0:  # the robot names none of the roles
+                self.disturbances = None
+        self.rewards = RewardSum(reward_cfg, self.dt, dev)
+
+        f32 = dict(dtype=torch.float32, device=dev)
+        self.nominal = torch.as_tensor(spec.nominal_q(), **f32)
+        limits = torch.as_tensor(spec.joint_limits, **f32)
+        self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
+        self.sensitivity = torch.as_tensor(spec.sensitivity, **f32)
+        self._friction = torch.tensor([[spec.friction]], **f32)
+        self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
+        std = noise_std(spec, env_cfg.noise)
+        noisy = std.nonzero()
+        # noise is drawn for the measured columns only (a prefix of the layout)
+        self._noise_cols = int(noisy.max()) + 1 if len(noisy) else 0
+        self._noise_std = std[: self._noise_cols].to(dev)
+
+        j, nb = len(spec.joints), sim.state.body_vel.shape[1] - 1
+        self.step_count = torch.zeros(n, dtype=torch.long, device=dev)
+        self.end_pose_ids = torch.zeros(n, dtype=torch.long, device=dev)
+        self.goal_root_quat = torch.zeros(n, 4, **f32)  # path frame
+        self.goal_joint_pos = torch.zeros(n, j, **f32)
+        self.last_action = torch.zeros(n, j, **f32)
+        self.last_last_action = torch.zeros(n, j, **f32)
+        self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
+        self._all = torch.ones(n, dtype=torch.bool, device=dev)
+        self._no = torch.zeros(n, 1, dtype=torch.bool, device=dev)
+
+        da = sum(s for _, s in actor_layout(spec))
+        dc = sum(s for _, s in critic_layout(spec))
+        self.observation_spec = Composite(
+            policy=Unbounded((n, da), device=dev),
+            critic=Unbounded((n, dc), device=dev),
+            contact_force=Unbounded((n, len(spec.components)), device=dev),
+            shape=(n,),
+            device=dev,
+        )
+        self.action_spec = Unbounded((n, j), device=dev)
+        self.reward_spec = Unbounded((n, 1), device=dev)
+        flag = lambda: Categorical(2, (n, 1), dtype=torch.bool, device=dev)  # noqa: E731
+        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=dev)
+
+    # ---- public helpers -------------------------------------------------------------
+
+    def action_for_setpoint(self, q: torch.Tensor) -> torch.Tensor:
+        """The action whose setpoint is q [.., J] (inverse of the action mapping)."""
+        return (q.to(self.nominal) - self.nominal) / self.action_scale
+
+    def setpoint(self, action: torch.Tensor) -> torch.Tensor:
+        """Joint setpoints [N, J] of an action: nominal + action_scale · a, clipped to the limits."""
+        q = torch.addcmul(self.nominal, action, torch.tensor(self.action_scale, device=self.device))
+        if self.env_cfg.clip_setpoints:
+            q = torch.minimum(torch.maximum(q, self._q_lo), self._q_hi)
+        return q
+
+    def reset_to(self, qpos: torch.Tensor, qvel: torch.Tensor, end_pose_ids: torch.Tensor) -> TensorDictBase:
+        """Reset ALL worlds to given MuJoCo-layout states and end poses (paired evaluation)."""
+        n = self.num_envs
+        if qpos.shape[0] != n or qvel.shape[0] != n or end_pose_ids.shape != (n,):
+            raise ValueError(
+                f"reset_to: need {n} states and end-pose ids, got qpos {list(qpos.shape)}, "
+                f"qvel {list(qvel.shape)}, end_pose_ids {list(end_pose_ids.shape)}"
+            )
+        ids = end_pose_ids.to(self.device, torch.long)
+        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= len(self.end_poses)):
+            raise ValueError(f"reset_to: end_pose_ids must be in [0, {len(self.end_poses)})")
+        self._reset_worlds(self._all, torch.arange(n, device=self.device), qpos, qvel, ids)
+        return self._observation(self._no.expand(n, 1))
+
+    def target_root_quat(self) -> torch.Tensor:
+        """The current world-frame target θ̂_t [N, 4]: the end pose's tilt turned to the robot's heading."""
+        return path_frame(self.sim.state.root_quat).turn(self.goal_root_quat)
+
+    @property
+    def reward_terms_mean(self) -> dict[str, torch.Tensor]:
+        """Per-term mean over worlds of the last step's contribution (weight · term · dt), 0-dim tensors."""
+        return dict(zip(self.rewards.names, self.rewards.last_mean.unbind()))
+
+    def pop_reward_terms(self) -> dict[str, float]:
+        """Per-term mean contribution per step since the last call (weight · term · dt); then starts over."""
+        return self.rewards.pop_means()
+
+    def stagger_episodes(self) -> None:
+        """Spread the worlds' episode clocks uniformly over [0, T) (training only).
+
+        All worlds start together, so without this every impact of the batch would
+        fall in the same iterations every T seconds: the batch statistics, and with
+        them PPO's adaptive learning rate, would swing with that period.
+        """
+        self.step_count.copy_(torch.randint(self.max_steps, (self.num_envs,), generator=self._gen, device=self.device))
+
+    # Names differ from nn.Module's state_dict on purpose: this is the simulation's and
+    # episodes' state, not parameters.
+    _BUFFERS = ("step_count", "end_pose_ids", "goal_root_quat", "goal_joint_pos", "last_action", "last_last_action", "_motion")
+
+    def run_state(self) -> dict:
+        """Everything needed to continue exactly: physics, episode buffers, disturbances, generators."""
+        state = {name: getattr(self, name).clone() for name in self._BUFFERS}
+        state["sim"] = self.sim.state_dict()
+        state["generators"] = (self._cpu_gen.get_state(), self._gen.get_state())
+        if self.disturbances is not None:
+            d = self.disturbances
+            state["disturbances"] = (d.active.clone(), d.remaining.clone(), d.wrench.clone())
+        return state
+
+    def load_run_state(self, state: dict) -> None:
+        """Restore what run_state() returned (same robot, number of envs and config)."""
+        if state["step_count"].shape != self.step_count.shape:
+            raise ValueError(
+                f"the saved run has {state['step_count'].shape[0]} envs, this one {self.num_envs} (sim.num_envs)"
+            )
+        for name in self._BUFFERS:
+            getattr(self, name).copy_(state[name])
+        self.sim.load_state_dict(state["sim"])
+        self._cpu_gen.set_state(state["generators"][0])
+        self._gen.set_state(state["generators"][1])
+        if self.disturbances is not None and "disturbances" in state:
+            d = self.disturbances
+            d.active, d.remaining, d.wrench = (t.to(self.device) for t in state["disturbances"])
+
+    @property
+    def num_unstable(self) -> int:
+        """Worlds found unstable so far (their episodes were truncated and reset)."""
+        return self.sim.num_unstable
+
+    # ---- EnvBase ----------------------------------------------------------------------
+
+    def _set_seed(self, seed: int | None) -> None:
+        seed = 0 if seed is None else int(seed)
+        self._cpu_gen.manual_seed(seed)
+        self._gen.manual_seed(seed + 1)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = tensordict.get("_reset", None) if tensordict is not None else None
+        if mask is None:
+            mask = self._all
+        else:
+            mask = mask.view(-1).to(self.device)
+        ids = mask.nonzero().view(-1)
+        k = ids.numel()
+        if k:
+            qpos, qvel = self.initial_states.sample(k, self._cpu_gen)
+            poses = torch.randint(len(self.end_poses), (k,), generator=self._gen, device=self.device)
+            self._reset_worlds(mask, ids, qpos, qvel, poses)
+        return self._observation(self._no.expand(self.num_envs, 1))
+
+    def _reset_worlds(
+        self, mask: torch.Tensor, ids: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor, poses: torch.Tensor
+    ) -> None:
+        self.sim.reset(ids, qpos, qvel)
+        st = self.sim.state
+        ids = ids.to(self.device)
+        self.step_count[ids] = 0
+        self.end_pose_ids[ids] = poses
+        self.goal_root_quat[ids] = self._goal_tilt[poses]
+        self.goal_joint_pos[ids] = self.end_poses.joint_pos[poses].to(torch.float32)
+        hold = self.action_for_setpoint(st.joint_pos[ids])  # the sim holds the reset pose
+        self.last_action[ids] = hold
+        self.last_last_action[ids] = hold
+        self._motion[ids] = torch.cat((planar_motion(st.body_vel[ids, 1:]), torch.zeros_like(self._motion[ids, 2:])), 1)
+        if self.disturbances is not None:
+            self.disturbances.reset(mask, self._gen)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        if self.disturbances is not None:
+            self.sim.set_external_wrench(self.disturbances.body_ids, self.disturbances.step(self.dt, self._gen))
+        st = self.sim.step(self.setpoint(action))
+        self.step_count += 1
+        unstable = st.unstable.to(self.device)
+
+        vel = planar_motion(st.body_vel[:, 1:])
+        acc = torch.sub(vel, self._motion[:, :2]).mul_(1.0 / self.dt)
+        # unstable worlds were put back to their reset state by the sim: no acceleration
+        acc.masked_fill_(unstable.view(-1, 1, 1, 1), 0.0)
+        self._motion = torch.cat((vel, acc), dim=1)
+
+        frame = path_frame(st.root_quat)
+        t = self.step_count * self.dt
+        ctx = RewardContext(
+            state=st,
+            action=action,
+            last_action=self.last_action,
+            last_last_action=self.last_last_action,
+            target_root_quat=frame.turn(self.goal_root_quat),
+            target_joint_pos=self.goal_joint_pos,
+            sensitivity=self.sensitivity,
+            time=t,
+            blend=blend(t, self.reward_cfg.blend_time),
+            force_unit=self.reward_cfg.force_unit,
+            force_clip=self.reward_cfg.force_clip,
+            dt=self.dt,
+        )
+        reward = torch.where(unstable, 0.0, self.rewards(ctx))
+        self.last_last_action = self.last_action
+        self.last_action = action.clone()
+        truncated = ((self.step_count >= self.max_steps) | unstable).view(-1, 1)
+        out = self._observation(truncated, frame)
+        out.set("reward", reward.view(-1, 1))
+        return out
+
+    # ---- internals ----------------------------------------------------------------
+
+    def _observation(self, truncated: torch.Tensor, frame=None) -> TensorDictBase:
+        st = self.sim.state
+        frame = frame if frame is not None else path_frame(st.root_quat)
+        actor = actor_observation(
+            frame, st.root_quat, st.root_lin_vel, st.root_ang_vel, st.joint_pos, st.joint_vel,
+            self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos,
+        )  # fmt: skip
+        critic = critic_observation(
+            actor, frame, self.step_count * (1.0 / self.max_steps), self._friction, st.root_pos[:, 2],
+            st.body_pos[:, 1:, 2], self._motion,
+        )  # fmt: skip
+        policy = actor
+        if self._noise_cols:
+            k = self._noise_cols
+            policy = actor.clone()
+            noise = torch.randn((actor.shape[0], k), generator=self._gen, device=self.device)
+            policy[:, :k].addcmul_(noise, self._noise_std)
+        return TensorDict(
+            {
+                "policy": policy,
+                "critic": critic,
+                "contact_force": st.contact_force.square().sum(dim=-1).amax(dim=1).sqrt(),
+                "done": truncated.clone(),
+                "terminated": torch.zeros_like(truncated),
+                "truncated": truncated,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+
+def _check_inputs(
+    spec: RobotSpec, env_cfg: EnvConfig, reward_cfg: RewardConfig, end_poses: EndPoseSet, sim: BatchSim
+) -> None:
+    if list(sim.spec.joint_names) != list(spec.joint_names):
+        raise ValueError(f"FallEnv: the simulator's robot '{sim.spec.name}' has other joints than '{spec.name}'")
+    if list(end_poses.joint_names) != list(spec.joint_names):
+        raise ValueError(
+            f"FallEnv: end poses are for joints {end_poses.joint_names[:3]}… of robot '{end_poses.robot}', "
+            f"not the joints of robot '{spec.name}'"
+        )
+    if len(end_poses) == 0:
+        raise ValueError("FallEnv: the end-pose set is empty")
+    if sim.state.body_vel is None:
+        raise ValueError(
+            "FallEnv: the critic observes rigid-body velocities; make the simulator with body_state=True "
+            "(fallkit.env.build.make_env does)"
+        )
+    if reward_cfg.blend_time > env_cfg.episode_length:
+        raise ValueError(
+            f"reward.blend_time ({reward_cfg.blend_time} s) must not exceed env.episode_length "
+            f"({env_cfg.episode_length} s): u(t) would never reach 1 (paper: T_blend <= T)"
+        )
+
+
+def random_end_poses(spec: RobotSpec, n: int, generator: torch.Generator) -> EndPoseSet:
+    """n unsettled end poses: collision-free joints within limits, root pitch then yaw uniform in ±180°.
+
+    For tests and quick experiments without a dataset (`fallkit.poses.files` loads real ones): the poses
+    are not dropped and settled, so some cannot be reached at rest.
+    """
+    from fallkit.poses.checker import PoseChecker
+
+    joints = PoseChecker(spec).sample_joints(n, generator)
+    pitch, yaw = ((2.0 * torch.rand(2, n, generator=generator, dtype=torch.float64) - 1.0) * torch.pi).unbind()
+    quat = quat_from_euler(torch.zeros_like(pitch), pitch, yaw)
+    return EndPoseSet(spec.name, spec.joint_names, joints.float(), quat.float())

@@ -1,0 +1,208 @@
+"""Actor and critic observations of the falling environment (paper Sec. IV-A, V-A).
+
+The actor observation (what the robot can measure, plus the goal) is declared once,
+in `ACTOR_OBSERVATION`: name, size and the noise level that applies to it. The
+observation itself, its noise, the policy's hold prior (`fallkit.rl.models`) and the
+export metadata (`fallkit.rl.export`) are all derived from that declaration, so the
+order is written in one place. Gaussian noise goes on the measured parts only.
+
+Critic (privileged): the noiseless actor observation, then
+  phase           1  t / T
+  friction        1  floor sliding friction (constant until friction is randomized)
+  root_height     1  [m]
+  body_height   B-1  height of every body [m]
+  body_vel   6(B-1)  spatial velocity of every body (MuJoCo cvel: angular, linear about
+                     the robot's centre of mass), rotated into the path frame;
+                     component-major: ωx of all bodies, ωy …, then vx …
+  body_acc   6(B-1)  Δ body_vel / policy_dt, same layout
+Everything horizontal is expressed in the path frame, so both observations are
+invariant under rotations of the world about z and horizontal translations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from fallkit.config import ObservationNoise
+from fallkit.robots.spec import RobotSpec
+from fallkit.rotations import quat_rotate_inverse
+
+
+@dataclass(frozen=True)
+class ObservationPart:
+    """One named slice of the actor observation."""
+
+    name: str
+    size: int  # entries, or entries per joint when per_joint
+    per_joint: bool = False
+    noise: str | None = None  # the ObservationNoise field giving its std; None: exact (actions, goal)
+    doc: str = ""
+
+    def width(self, spec: RobotSpec) -> int:
+        return self.size * len(spec.joints) if self.per_joint else self.size
+
+
+# The actor observation, in order (paper Sec. IV-A: s_t, then the goal g_t).
+ACTOR_OBSERVATION: tuple[ObservationPart, ...] = (
+    ObservationPart("root_quat", 4, noise="root_quat", doc="root orientation in the path frame (tilt_quat: heading removed, w >= 0)"),
+    ObservationPart("root_lin_vel", 3, noise="root_lin_vel", doc="root linear velocity, root frame [m/s]"),
+    ObservationPart("root_ang_vel", 3, noise="root_ang_vel", doc="root angular velocity, root frame [rad/s]"),
+    ObservationPart("joint_pos", 1, per_joint=True, noise="joint_pos", doc="joint angles [rad]"),
+    ObservationPart("joint_vel", 1, per_joint=True, noise="joint_vel", doc="joint velocities [rad/s]"),
+    ObservationPart("last_action", 1, per_joint=True, doc="a_{t-1}, policy action units"),
+    ObservationPart("last_last_action", 1, per_joint=True, doc="a_{t-2}, policy action units"),
+    ObservationPart("goal_root_quat", 4, doc="end-pose root orientation in the path frame (see FallEnv)"),
+    ObservationPart("goal_joint_pos", 1, per_joint=True, doc="end-pose joint angles [rad]"),
+)  # fmt: skip
+
+
+def actor_layout(spec: RobotSpec) -> list[tuple[str, int]]:
+    """(name, size) of each part of the actor observation, in order."""
+    return [(part.name, part.width(spec)) for part in ACTOR_OBSERVATION]
+
+
+def actor_slices(spec: RobotSpec) -> dict[str, slice]:
+    """Columns of each part of the actor observation."""
+    out, start = {}, 0
+    for name, size in actor_layout(spec):
+        out[name] = slice(start, start + size)
+        start += size
+    return out
+
+
+def describe_actor_observation(spec: RobotSpec) -> list[dict]:
+    """The layout as plain data (name, start, size, noise field, meaning): the export's metadata."""
+    slices = actor_slices(spec)
+    return [
+        {"name": p.name, "start": slices[p.name].start, "size": p.width(spec), "noise": p.noise, "meaning": p.doc}
+        for p in ACTOR_OBSERVATION
+    ]
+
+
+def critic_layout(spec: RobotSpec) -> list[tuple[str, int]]:
+    """(name, size) of each part of the critic observation, in order."""
+    b = spec.mj_model().nbody - 1  # without the world body
+    return [(f"actor.{n}", s) for n, s in actor_layout(spec)] + [
+        ("phase", 1), ("friction", 1), ("root_height", 1), ("body_height", b), ("body_vel", 6 * b), ("body_acc", 6 * b),
+    ]  # fmt: skip
+
+
+def noise_std(spec: RobotSpec, noise: ObservationNoise) -> torch.Tensor:
+    """Per-dimension std [Da] of the actor noise (0 for the parts declared without noise)."""
+    return torch.cat(
+        [
+            torch.full((p.width(spec),), getattr(noise, p.noise) * noise.scale if p.noise else 0.0)
+            for p in ACTOR_OBSERVATION
+        ]
+    )
+
+
+@dataclass
+class PathFrame:
+    """The path frame of every world (paper Sec. IV-A), computed once per step.
+
+    Origin at the root, x/y horizontal, x along the root's heading; the heading is
+    the twist about world z of the root quaternion (`fallkit.rotations.heading_quat`).
+    """
+
+    tilt: torch.Tensor  # [N, 4] root orientation in the path frame (tilt_quat)
+    heading: torch.Tensor  # [N, 2] (w, z) of the heading quaternion (w, 0, 0, z)
+    cos: torch.Tensor  # [N, 1] cos ψ of the heading angle ψ
+    sin: torch.Tensor  # [N, 1] sin ψ
+
+    def into(self, v: torch.Tensor) -> torch.Tensor:
+        """World vectors [N, ..., 3] expressed in the path frame (rotated by −ψ about z)."""
+        shape = (-1,) + (1,) * (v.dim() - 2)
+        c, s = self.cos.view(shape), self.sin.view(shape)
+        x, y, z = v.unbind(-1)
+        return torch.stack((c * x + s * y, c * y - s * x, z), dim=-1)
+
+    def into_planar(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x and y components [N, ...] of world vectors, rotated into the path frame."""
+        shape = (-1,) + (1,) * (x.dim() - 1)
+        c, s = self.cos.view(shape), self.sin.view(shape)
+        return torch.addcmul(c * x, s, y), torch.addcmul(c * y, -s, x)
+
+    def turn(self, q: torch.Tensor) -> torch.Tensor:
+        """World orientation [N, 4] of path-frame orientations q: heading ⊗ q."""
+        a, b = self.heading.unbind(-1)
+        w, x, y, z = q.unbind(-1)
+        # (a, 0, 0, b) ⊗ (w, x, y, z)
+        return torch.stack((a * w - b * z, a * x - b * y, a * y + b * x, a * z + b * w), -1)
+
+
+def path_frame(root_quat: torch.Tensor) -> PathFrame:
+    """The path frames of root orientations [N, 4] (same results as heading_quat / tilt_quat, fewer ops)."""
+    w, x, y, z = root_quat.unbind(-1)
+    n2 = w * w + z * z
+    ok = n2 > 1e-12  # upside down exactly: no heading, identity frame (as heading_quat)
+    n = torch.sqrt(n2)
+    inv = torch.where(ok, 1.0 / n, 0.0)
+    hw, hz = torch.where(ok, w * inv, 1.0), z * inv
+    tx = torch.where(ok, (w * x + z * y) * inv, x)
+    ty = torch.where(ok, (w * y - z * x) * inv, y)
+    tilt = torch.stack((n, tx, ty, 0.0 * n), -1)
+    return PathFrame(
+        tilt=tilt,
+        heading=torch.stack((hw, hz), -1),
+        cos=(hw * hw - hz * hz).unsqueeze(-1),
+        sin=(2.0 * hw * hz).unsqueeze(-1),
+    )
+
+
+def actor_observation(
+    frame: PathFrame,
+    root_quat: torch.Tensor,
+    root_lin_vel: torch.Tensor,
+    root_ang_vel: torch.Tensor,
+    joint_pos: torch.Tensor,
+    joint_vel: torch.Tensor,
+    last_action: torch.Tensor,
+    last_last_action: torch.Tensor,
+    goal_root_quat: torch.Tensor,
+    goal_joint_pos: torch.Tensor,
+) -> torch.Tensor:
+    """Noiseless actor observation [N, Da]; root_lin_vel in world, root_ang_vel in root frame (as SimState)."""
+    parts = {
+        "root_quat": frame.tilt,
+        "root_lin_vel": quat_rotate_inverse(root_quat, root_lin_vel),
+        "root_ang_vel": root_ang_vel,
+        "joint_pos": joint_pos,
+        "joint_vel": joint_vel,
+        "last_action": last_action,
+        "last_last_action": last_last_action,
+        "goal_root_quat": goal_root_quat,
+        "goal_joint_pos": goal_joint_pos,
+    }
+    return torch.cat([parts[p.name] for p in ACTOR_OBSERVATION], dim=-1)
+
+
+def critic_observation(
+    actor: torch.Tensor,
+    frame: PathFrame,
+    phase: torch.Tensor,
+    friction: torch.Tensor,
+    root_height: torch.Tensor,
+    body_height: torch.Tensor,
+    body_motion: torch.Tensor,
+) -> torch.Tensor:
+    """The critic observation [N, Dc]: the noiseless actor observation, then the privileged part.
+
+    body_motion [N, 4, 3, B-1]: body angular and linear velocity, then angular and
+    linear acceleration, world frame, in planar layout (components first, bodies
+    last: contiguous rows make the rotation into the path frame cheap).
+    """
+    n = actor.shape[0]
+    x, y = frame.into_planar(body_motion[:, :, 0], body_motion[:, :, 1])
+    motion = torch.stack((x, y, body_motion[:, :, 2]), dim=2).view(n, -1)
+    return torch.cat(
+        (actor, phase.view(n, 1), friction.expand(n, 1), root_height.view(n, 1), body_height, motion), dim=-1
+    )
+
+
+def planar_motion(body_vel: torch.Tensor) -> torch.Tensor:
+    """MuJoCo cvel [N, B, 6] (angular, linear) as [N, 2, 3, B]: vector, component, body."""
+    n, b, _ = body_vel.shape
+    return body_vel.transpose(1, 2).reshape(n, 2, 3, b)

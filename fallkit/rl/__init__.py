@@ -1,0 +1,1 @@
+"""Learning: actor and critic models, PPO, the Trainer, checkpoints, policy loading, ONNX export."""

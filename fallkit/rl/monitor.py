@@ -1,0 +1,108 @@
+"""What a training run shows and keeps while it runs: the progress bar, TensorBoard and
+metrics.csv, and a stop flag for SIGINT/SIGTERM (finish the iteration, save, stop)."""
+
+from __future__ import annotations
+
+import csv
+import signal
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+class StopFlag:
+    """SIGINT/SIGTERM ask the loop to stop after the current iteration (and save); a second one stops at once."""
+
+    def __init__(self):
+        self.requested: str | None = None
+        self._previous = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self._previous[sig] = signal.signal(sig, self._handle)
+            except ValueError:  # not the main thread
+                pass
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class Progress:
+    """The training bar: iterations, speed, reward, impact and learning rate; time left under a budget."""
+
+    def __init__(self, total: int, start: int, max_minutes: float | None, enabled: bool):
+        self.started = time.monotonic()
+        self.budget_s = None if max_minutes is None else 60.0 * max_minutes
+        # a time budget ends the run long before the iteration budget: show the time left, not a share of iterations
+        bar_format = "{desc}: {n_fmt} it [{elapsed}, {rate_fmt}{postfix}]" if self.budget_s else None
+        self.bar = tqdm(
+            total=total, initial=start, desc="train", unit="it", disable=not enabled, dynamic_ncols=True,
+            bar_format=bar_format,
+        )  # fmt: skip
+
+    @property
+    def elapsed(self) -> float:
+        return time.monotonic() - self.started
+
+    @property
+    def out_of_time(self) -> bool:
+        return self.budget_s is not None and self.elapsed > self.budget_s
+
+    def update(self, stats: dict[str, float]) -> None:
+        left = {} if self.budget_s is None else {"left": tqdm.format_interval(max(0, self.budget_s - self.elapsed))}
+        self.bar.set_postfix(
+            steps_s=f"{stats['env_steps_per_s']:.0f}",
+            reward=f"{stats['reward']:.3f}",
+            impact_N=f"{stats.get('episode/max_impact_force', float('nan')):.0f}",
+            lr=f"{stats['learning_rate']:.1e}",
+            **left,
+            refresh=False,
+        )
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class MetricsLog:
+    """TensorBoard scalars and a CSV of the same figures, one row per iteration (main rank only)."""
+
+    def __init__(self, run_dir: Path, enabled: bool):
+        self.enabled = enabled
+        if not enabled:
+            return
+        from torch.utils.tensorboard import SummaryWriter  # imports TensorBoard: only where logging happens
+
+        self.tb = SummaryWriter(str(run_dir / "tensorboard"))
+        self.csv_path = run_dir / "metrics.csv"
+        self._file = None
+        self._writer = None
+        self._fields: list[str] | None = None
+
+    def log(self, it: int, stats: dict[str, float]) -> None:
+        if not self.enabled:
+            return
+        for k, v in stats.items():
+            self.tb.add_scalar(k, v, it)
+        row = {"iteration": it, **stats}
+        if self._writer is None:
+            new = not self.csv_path.exists()
+            self._file = open(self.csv_path, "a", newline="")
+            self._fields = list(row)
+            self._writer = csv.DictWriter(self._file, fieldnames=self._fields, extrasaction="ignore")
+            if new:
+                self._writer.writeheader()
+        self._writer.writerow({k: row.get(k, "") for k in self._fields})
+        self._file.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.tb.close()
+            if self._file:
+                self._file.close()

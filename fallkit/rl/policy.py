@@ -1,0 +1,61 @@
+"""Trained policies: load a checkpoint as a deterministic TensorDict module.
+
+`load_policy(path).module` maps the actor observation ("policy") to the action
+("action") with the Gaussian's mean; observation normalisation is inside it, so
+it is the whole controller: setpoint = nominal + action_scale · action.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from fallkit.config import FallkitConfig, validate
+from fallkit.errors import CheckpointError
+from fallkit.rl.checkpoint import load_checkpoint
+from fallkit.robots import robot_spec
+from fallkit.rl.models import GaussianPolicyNet, hold_prior
+from fallkit.robots.spec import RobotSpec
+
+
+class MeanAction(nn.Module):
+    """The deterministic controller: normalise, MLP, take the mean."""
+
+    def __init__(self, net: GaussianPolicyNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs)[0]
+
+
+@dataclass
+class LoadedPolicy:
+    module: TensorDictModule  # "policy" -> "action"
+    config: FallkitConfig  # the training run's configuration
+    spec: RobotSpec
+    iteration: int
+    path: Path
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedPolicy:
+    ckpt = load_checkpoint(path, map_location=device)
+    config = validate(ckpt["config"])
+    spec = robot_spec(config.robot)
+    if spec.model_hash() != ckpt["model_hash"]:
+        raise CheckpointError(
+            f"checkpoint {ckpt['path']} was trained on a different version of robot '{spec.name}' "
+            f"(model {ckpt['model_hash']}, installed {spec.model_hash()})"
+        )
+    weights = {k.split("module.0.module.", 1)[1]: v for k, v in ckpt["actor"].items() if "module.0.module." in k}
+    obs_dim = weights["norm.mean"].shape[0]
+    act_dim = weights["log_std"].shape[0]
+    net = GaussianPolicyNet(obs_dim, act_dim, config.train.actor_hidden, 1.0, hold_prior(config, spec))
+    net.load_state_dict(weights)
+    net.to(device).eval()
+    module = TensorDictModule(MeanAction(net), in_keys=["policy"], out_keys=["action"])
+    return LoadedPolicy(module, config, spec, int(ckpt["iteration"]), Path(ckpt["path"]))

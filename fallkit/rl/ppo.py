@@ -1,0 +1,151 @@
+"""PPO update (paper Table III) from TorchRL parts: GAE, ClipPPOLoss, an adaptive learning rate.
+
+One call of `PPO.update(batch)` is one iteration's learning:
+
+  1. GAE over the [num_envs, num_steps] batch (bootstrapping at truncation: episodes
+     only end by time, so "terminated" stays False and the value of the last state
+     is used).
+  2. `epochs` passes over `num_minibatches` shuffled minibatches: clipped surrogate +
+     clipped value loss (+ entropy if its coefficient is not 0), gradients clipped to
+     `max_grad_norm`.
+  3. Before each minibatch's step, the KL between the collecting policy and the
+     current one (exact, for diagonal Gaussians) adapts the learning rate as rsl_rl
+     does: KL > 2·target → lr / 1.5, KL < target / 2 → lr · 1.5, within [lr_min, lr_max].
+
+With torch.distributed initialised (torchrun), gradients are averaged over ranks
+before each optimizer step, and the KL used for the learning rate is averaged too,
+so every rank keeps identical weights and learning rate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.distributed as dist
+from tensordict import TensorDict
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from fallkit.rl.models import policy_net
+from fallkit.config import PPOConfig
+
+
+def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:
+    """rsl_rl's rule: shrink the step when the policy moved too far, grow it when too little."""
+    if cfg.desired_kl is None:
+        return lr
+    if kl > 2.0 * cfg.desired_kl:
+        return max(cfg.lr_min, lr / 1.5)
+    if 0.0 < kl < cfg.desired_kl / 2.0:
+        return min(cfg.lr_max, lr * 1.5)
+    return lr
+
+
+def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Mean over the batch of KL(old ‖ new) for diagonal Gaussians."""
+    kl = torch.log(scale / scale_old) + (scale_old.square() + (loc_old - loc).square()) / (2.0 * scale.square()) - 0.5
+    return kl.sum(-1).mean()
+
+
+class PPO:
+    def __init__(self, actor, critic, cfg: PPOConfig):
+        self.cfg = cfg
+        self.actor, self.critic = actor, critic
+        self.loss = ClipPPOLoss(
+            actor,
+            critic,
+            clip_epsilon=cfg.clip,
+            entropy_bonus=cfg.entropy_coef > 0,
+            entropy_coeff=cfg.entropy_coef if cfg.entropy_coef > 0 else None,
+            critic_coeff=cfg.value_coef,
+            loss_critic_type="l2",
+            normalize_advantage=True,
+            clip_value=cfg.clip,
+        )
+        self.gae = GAE(gamma=cfg.gamma, lmbda=cfg.lam, value_network=critic, average_gae=False)
+        self.params = [p for p in self.loss.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.learning_rate)
+        self.learning_rate = cfg.learning_rate
+
+    def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, float]:
+        """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures."""
+        cfg = self.cfg
+        with torch.no_grad():
+            self.gae(batch)
+        flat = batch.reshape(-1)
+        n = flat.shape[0]
+        mb = n // cfg.num_minibatches
+        net = policy_net(self.actor)
+        sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "kl": 0.0, "clip_fraction": 0.0}
+        count = 0
+        for _ in range(cfg.epochs):
+            perm = torch.randperm(n, generator=generator, device="cpu").to(flat.device)
+            for k in range(cfg.num_minibatches):
+                data = flat[perm[k * mb : (k + 1) * mb]]
+                # KL of this minibatch between the collecting policy and the current one
+                with torch.no_grad():
+                    loc, scale = net(data["policy"])
+                    kl = gaussian_kl(data["loc"], data["scale"], loc, scale)
+                    kl = _mean_over_ranks(kl)
+                self.learning_rate = adapt_learning_rate(self.learning_rate, kl.item(), cfg)
+                for group in self.optimizer.param_groups:
+                    group["lr"] = self.learning_rate
+
+                out = self.loss(data)
+                loss = out["loss_objective"] + out["loss_critic"]
+                if "loss_entropy" in out.keys():
+                    loss = loss + out["loss_entropy"]
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                _average_gradients(self.params)
+                torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+                self.optimizer.step()
+
+                sums["loss_objective"] += out["loss_objective"].item()
+                sums["loss_critic"] += out["loss_critic"].item()
+                sums["loss_entropy"] += out["loss_entropy"].item() if "loss_entropy" in out.keys() else 0.0
+                sums["clip_fraction"] += out["clip_fraction"].item() if "clip_fraction" in out.keys() else 0.0
+                sums["kl"] += kl.item()
+                count += 1
+        stats = {k: v / count for k, v in sums.items()}
+        stats["learning_rate"] = self.learning_rate
+        stats["action_std"] = net.log_std.exp().mean().item()
+        # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
+        stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
+        return stats
+
+    def state_dict(self) -> dict:
+        return {"optimizer": self.optimizer.state_dict(), "learning_rate": self.learning_rate}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.learning_rate = state["learning_rate"]
+
+
+def distributed() -> bool:
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
+def _average_gradients(params: list[torch.Tensor]) -> None:
+    if not distributed():
+        return
+    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat, op=dist.ReduceOp.SUM)
+    flat /= dist.get_world_size()
+    offset = 0
+    for p, g in zip(params, grads):
+        size = g.numel()
+        if p.grad is None:
+            p.grad = g
+        p.grad.copy_(flat[offset : offset + size].view_as(g))
+        offset += size
+
+
+def _mean_over_ranks(x: torch.Tensor) -> torch.Tensor:
+    if not distributed():
+        return x
+    x = x.clone()
+    dist.all_reduce(x, op=dist.ReduceOp.SUM)
+    return x / dist.get_world_size()

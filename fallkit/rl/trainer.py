@@ -1,0 +1,281 @@
+"""`mode=train`: PPO on the batched falling environment (paper Sec. V-A, Table III).
+
+`Trainer.run()` is the whole loop, one iteration per pass, read top to bottom:
+  collect   num_steps policy steps in every env (TorchRL's step_and_maybe_reset:
+            finished envs restart with a fresh initial state and end pose)
+  learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr; then
+            merge the batch into the running observation statistics (after the
+            update, so the update saw the statistics the data was collected with)
+  log       progress bar, TensorBoard scalars, metrics.csv
+  save      checkpoints/iter_<k>.pt every checkpoint_every iterations and last.pt at
+            the end, atomically; SIGINT/SIGTERM finish the iteration, save, and stop.
+A checkpoint is `Trainer.state_dict()`; `load_state_dict` continues a run exactly.
+
+Under torchrun each rank steps its own envs with its own seed; gradients, KL and
+observation statistics are averaged over ranks; rank 0 logs and saves.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from fallkit.config import FallkitConfig
+from fallkit.env.build import make_env
+from fallkit.env.fall_env import FallEnv
+from fallkit.errors import CheckpointError, ConfigError
+from fallkit.rl.checkpoint import load_checkpoint, save_checkpoint
+from fallkit.rl.models import hold_prior, make_actor, make_critic, policy_net, value_net
+from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
+from fallkit.rl.ppo import PPO, distributed
+from fallkit.robots import robot_spec
+
+log = logging.getLogger(__name__)
+
+
+class Trainer:
+    """One training run: env, actor, critic, PPO and everything needed to continue it exactly."""
+
+    def __init__(self, config: FallkitConfig, run_dir: Path):
+        tc = config.train
+        self.config, self.run_dir = config, Path(run_dir)
+        self.rank = _init_distributed(config)
+        # MuJoCo's threads own the cores while collecting; the update has them to itself
+        self.collect_threads, self.update_threads = 1, tc.torch_threads or os.cpu_count() or 1
+        torch.set_num_threads(self.collect_threads)
+        seed = config.seed + 1_000_003 * self.rank
+        torch.manual_seed(seed)
+        self.spec = robot_spec(config.robot)
+        self.env = make_env(config, self.spec, split="train", seed=seed)
+        obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
+        act_dim = self.env.action_spec.shape[-1]
+        prior = hold_prior(config, self.spec)
+        self.actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior).to(self.env.device)
+        self.critic = make_critic(critic_dim, tc.critic_hidden).to(self.env.device)
+        if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
+            for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
+                dist.broadcast(tensor, src=0)
+        self.ppo = PPO(self.actor, self.critic, tc.ppo)
+        self.shuffle = torch.Generator().manual_seed(seed)
+        self.iteration, self.start = 0, 0
+        self.td: TensorDict | None = None  # the next collection's input
+        self.impacts = EpisodeImpacts(self.env)
+        self.stopped: str | None = None  # the signal that stopped the run, if one did
+        if config.resume:
+            ckpt = load_checkpoint(config.resume, map_location=self.env.device)
+            self.load_state_dict(ckpt)
+            self.start = self.iteration
+            log.info("resumed from %s at iteration %d", ckpt["path"], self.iteration)
+
+    @property
+    def main_rank(self) -> bool:
+        return self.rank == 0
+
+    def run(self) -> Path:
+        """Train until the iteration budget, the time budget or a stop signal; returns the last checkpoint."""
+        tc = self.config.train
+        if self.td is None:
+            self.td = self._first_observation()
+        metrics, stop = MetricsLog(self.run_dir, self.main_rank), StopFlag()
+        progress = Progress(tc.iterations, self.iteration, tc.max_minutes, self.main_rank)
+        try:
+            while self.iteration < tc.iterations:
+                t0 = time.perf_counter()
+                batch = self.collect()
+                t1 = time.perf_counter()
+                stats = self.learn(batch)
+                t2 = time.perf_counter()
+                self.iteration += 1
+                stats.update(self.diagnostics(batch, collect_s=t1 - t0, update_s=t2 - t1))
+                metrics.log(self.iteration, stats)
+                progress.update(stats)
+                if self.main_rank and self.iteration % tc.checkpoint_every == 0:
+                    self.save(self.run_dir / "checkpoints" / f"iter_{self.iteration:06d}.pt")
+                if stop.requested or progress.out_of_time:
+                    self._say_why_it_stopped(stop.requested)
+                    break
+        finally:
+            progress.close()
+            stop.restore()
+            metrics.close()
+        return self._finish(progress.elapsed)
+
+    # ---- the steps of one iteration ---------------------------------------------------
+
+    def collect(self) -> TensorDict:
+        """num_steps policy steps in every env: the [num_envs, num_steps] batch."""
+        batch, self.td = collect(self.env, self.actor, self.td, self.config.train.num_steps)
+        self.impacts.add(batch)
+        return batch
+
+    def learn(self, batch: TensorDict) -> dict[str, float]:
+        """The PPO update on all cores, then the batch into the running observation statistics."""
+        torch.set_num_threads(self.update_threads)
+        stats = self.ppo.update(batch, generator=self.shuffle)
+        _update_normalizers(self.actor, self.critic, batch)
+        torch.set_num_threads(self.collect_threads)
+        return stats
+
+    def diagnostics(self, batch: TensorDict, collect_s: float, update_s: float) -> dict[str, float]:
+        """Speed, reward, each reward term, stability and the finished episodes' impacts."""
+        ranks = dist.get_world_size() if distributed() else 1
+        stats = {
+            "reward": batch["next", "reward"].mean().item(),
+            "collect_s": collect_s,
+            "update_s": update_s,
+            "env_steps_per_s": batch.numel() * ranks / (collect_s + update_s),
+            "unstable": float(self.env.sim.num_unstable),
+        }
+        stats.update({f"reward_terms/{name}": v for name, v in self.env.pop_reward_terms().items()})
+        stats.update(self.impacts.pop())
+        return stats
+
+    def save(self, path: Path) -> None:
+        save_checkpoint(path, self.state_dict())
+
+    # ---- checkpoints --------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue exactly, and what evaluation needs to rebuild the policy."""
+        return {
+            "config": self.config.model_dump(mode="json"),
+            "robot": self.spec.name,
+            "model_hash": self.spec.model_hash(),
+            "iteration": self.iteration,
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "ppo": self.ppo.state_dict(),
+            "env": self.env.run_state(),
+            "observation": self.td.clone(),  # the next collection starts from it, noise included
+            "rng": {"torch": torch.get_rng_state(), "shuffle": self.shuffle.get_state()},
+        }
+
+    def load_state_dict(self, ckpt: dict[str, Any]) -> None:
+        """Continue from a checkpoint of the same robot, network sizes and number of envs."""
+        path = ckpt.get("path", "the checkpoint")
+        if ckpt["robot"] != self.spec.name or ckpt["model_hash"] != self.spec.model_hash():
+            raise CheckpointError(
+                f"checkpoint {path} was trained on robot '{ckpt['robot']}' (model {ckpt['model_hash']}); "
+                f"this run is '{self.spec.name}' (model {self.spec.model_hash()})"
+            )
+        try:
+            self.actor.load_state_dict(ckpt["actor"])
+            self.critic.load_state_dict(ckpt["critic"])
+        except RuntimeError as exc:
+            raise ConfigError(
+                f"resume: network sizes differ from checkpoint {path} "
+                f"(train.actor_hidden / train.critic_hidden): {str(exc).splitlines()[0]}"
+            ) from None
+        self.ppo.load_state_dict(ckpt["ppo"])
+        try:
+            self.env.load_run_state(ckpt["env"])
+        except ValueError as exc:
+            raise ConfigError(f"resume: {exc}") from None
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        self.shuffle.set_state(ckpt["rng"]["shuffle"])
+        self.iteration = int(ckpt["iteration"])
+        self.td = ckpt["observation"].to(self.env.device)
+
+    # ---- start and end ------------------------------------------------------------------
+
+    def _first_observation(self) -> TensorDict:
+        td = self.env.reset()
+        self.env.stagger_episodes()
+        # statistics from the first observations, so the first update is not on raw scales
+        _update_normalizers(self.actor, self.critic, td)
+        return td
+
+    def _say_why_it_stopped(self, signal_name: str | None) -> None:
+        if signal_name:
+            self.stopped = signal_name
+            log.warning("stopping on %s after iteration %d", signal_name, self.iteration)
+        else:
+            log.info("time budget of %g min reached after iteration %d", self.config.train.max_minutes, self.iteration)
+
+    def _finish(self, elapsed_s: float) -> Path:
+        last = self.run_dir / "checkpoints" / "last.pt"
+        if self.main_rank:
+            self.save(last)
+            print(f"\ntrained {self.iteration} iterations in {elapsed_s / 60:.1f} min; checkpoint: {last}")
+        if distributed():
+            _check_ranks_in_sync(self.actor)
+        return last
+
+
+class EpisodeImpacts:
+    """The worst contact force [N] on any component over each finished episode (for the log)."""
+
+    def __init__(self, env: FallEnv):
+        self.running = torch.zeros(env.batch_size, device=env.device)
+        self.finished: list[torch.Tensor] = []
+
+    def add(self, batch: TensorDict) -> None:
+        force = batch["next", "contact_force"].amax(dim=-1)  # [N, T]
+        done = batch["next", "done"].squeeze(-1)
+        for t in range(force.shape[1]):
+            self.running = torch.maximum(self.running, force[:, t])
+            if done[:, t].any():
+                self.finished.append(self.running[done[:, t]].clone())
+                self.running[done[:, t]] = 0.0
+
+    def pop(self) -> dict[str, float]:
+        impacts = torch.cat(self.finished) if self.finished else torch.empty(0)
+        self.finished.clear()
+        mean = impacts.mean().item() if len(impacts) else float("nan")
+        return {"episode/max_impact_force": mean, "episode/count": float(len(impacts))}
+
+
+def collect(env: FallEnv, actor, td: TensorDict, num_steps: int) -> tuple[TensorDict, TensorDict]:
+    """num_steps policy steps in every env: the [num_envs, num_steps] batch and the next step's input.
+
+    TorchRL's step_and_maybe_reset restarts finished episodes (fresh initial state and end pose).
+    """
+    steps = []
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        for _ in range(num_steps):
+            td = actor(td)
+            td, next_td = env.step_and_maybe_reset(td)
+            steps.append(td)
+            td = next_td
+    return torch.stack(steps, dim=1), td
+
+
+def _update_normalizers(actor, critic, batch: TensorDict) -> None:
+    for norm, key in ((policy_net(actor).norm, "policy"), (value_net(critic).norm, "critic")):
+        norm.update(batch[key])
+        if distributed():  # average the statistics so every rank normalises alike
+            stats = torch.cat([norm.mean, norm.var, norm.count.reshape(1)])
+            dist.all_reduce(stats)
+            stats /= dist.get_world_size()
+            d = norm.mean.numel()
+            norm.merge_(stats[:d], stats[d : 2 * d], stats[2 * d])
+
+
+def _check_ranks_in_sync(actor) -> None:
+    """Every rank must end with the same weights (gradients were averaged); say so, or fail loudly."""
+    flat = torch.cat([p.detach().reshape(-1).double() for p in actor.parameters()])
+    mine = torch.stack([flat.sum(), flat.square().sum()])
+    gathered = [torch.zeros_like(mine) for _ in range(dist.get_world_size())]
+    dist.all_gather(gathered, mine)
+    if any(not torch.equal(g, gathered[0]) for g in gathered):
+        raise RuntimeError("distributed training: ranks ended with different weights")
+    if dist.get_rank() == 0:
+        log.info("distributed training: weights identical on %d ranks", dist.get_world_size())
+    dist.barrier()
+
+
+def _init_distributed(config: FallkitConfig) -> int:
+    """Join the torchrun group when launched by torchrun; return this process's rank."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or distributed():
+        return dist.get_rank() if distributed() else 0
+    backend = "nccl" if config.sim.device.startswith("cuda") and torch.cuda.is_available() else "gloo"
+    dist.init_process_group(backend=backend)
+    return dist.get_rank()

@@ -1,1 +1,0 @@
-"""Samplers: initial falling states, end poses, disturbances."""

@@ -1,0 +1,82 @@
+"""One source of defaults: the pydantic models in fallkit/config/; the Hydra YAML adds no value twice."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
+
+import fallkit
+from fallkit.app import register_configs
+from fallkit.config import (
+    DatasetConfig,
+    EnvConfig,
+    EvalConfig,
+    RenderConfig,
+    RewardConfig,
+    SimConfig,
+    TrainConfig,
+    defaults,
+    validate,
+)
+
+CONF = Path(fallkit.__file__).parent / "conf"
+
+
+def composed(*overrides: str):
+    GlobalHydra.instance().clear()
+    register_configs()
+    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
+        raw = OmegaConf.to_container(compose(config_name="config", overrides=list(overrides)), resolve=False)
+    raw.pop("hydra", None)
+    return validate(raw)
+
+
+def leaves(tree: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(tree, dict):
+        return {prefix: tree}
+    out = {}
+    for key, value in tree.items():
+        out.update(leaves(value, f"{prefix}.{key}" if prefix else key))
+    return out
+
+
+def test_the_root_yaml_holds_no_values():
+    root = yaml.safe_load((CONF / "config.yaml").read_text())
+    assert set(root) == {"defaults", "hydra"}
+
+
+def test_composed_defaults_are_the_models_defaults():
+    config = composed()
+    assert config.env == EnvConfig() and config.reward == RewardConfig() and config.train == TrainConfig()
+    assert config.eval == EvalConfig() and config.render == RenderConfig() and config.dataset == DatasetConfig()
+    assert config.sim == SimConfig(num_envs=4096)  # the one value train=default adds: Table III's 4096 envs
+
+
+@pytest.mark.parametrize("option", sorted(str(p.relative_to(CONF)) for p in CONF.glob("[st]*/*.yaml")))
+def test_presets_only_write_values_that_differ_from_the_defaults(option):
+    """A preset (sim/*.yaml, train/*.yaml) that repeats a default would be a second place to change it."""
+    group = option.split("/")[0]
+    text = (CONF / option).read_text()
+    data = yaml.safe_load(text) or {}
+    data.pop("defaults", None)
+    tree = data if "@package _global_" in text else {group: data}
+    base = leaves(defaults())
+    if option == "train/quick.yaml":  # built on train/default
+        base.update(leaves(yaml.safe_load((CONF / "train" / "default.yaml").read_text())))
+    repeated = {k: v for k, v in leaves(tree).items() if k in base and base[k] == v}
+    assert not repeated, f"{option} repeats defaults: {repeated}"
+    unknown = sorted(set(leaves(tree)) - set(base))
+    assert not unknown, f"{option} sets keys no model has: {unknown}"
+
+
+def test_presets_compose_and_change_what_they_say():
+    quick = composed("train=quick")
+    assert quick.sim.num_envs == 256 and quick.train.max_minutes == 15 and quick.train.actor_hidden == [256, 256, 256]
+    warp = composed("sim=warp")
+    assert warp.sim.backend == "warp" and warp.sim.device == "auto" and warp.sim.threads == SimConfig().threads
