@@ -38,7 +38,8 @@ def main() -> None:
     from tensordict.nn import TensorDictModule
 
     from fallkit.api import get_robot
-    from fallkit.env.fall_env import FallEnv, random_end_poses
+    from fallkit.env.fall_env import FallEnv
+    from fallkit.poses.end_pose_set import random_end_poses
     from fallkit.config import FallkitConfig
     from fallkit.eval.evaluate import POLICY, chunking, draw_trials, eval_run_config, evaluate
     from fallkit.rl.models import GaussianPolicyNet

@@ -11,7 +11,9 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from fallkit.env.fall_env import FallEnv, random_end_poses
+from fallkit.env.fall_env import FallEnv
+
+from fallkit.poses.end_pose_set import random_end_poses
 
 from fallkit.config import EnvConfig
 from fallkit.env.observations import actor_layout, critic_layout

@@ -16,7 +16,8 @@ from torch import nn
 
 from fallkit.eval import evaluate as ev
 from fallkit.config import ConfigError, FallkitConfig
-from fallkit.env.fall_env import FallEnv, random_end_poses
+from fallkit.env.fall_env import FallEnv
+from fallkit.poses.end_pose_set import random_end_poses
 from fallkit.sim import make_sim
 from fallkit.eval.strategies import STRATEGIES
 

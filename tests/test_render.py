@@ -14,7 +14,8 @@ import torch
 
 from fallkit.eval import evaluate as ev
 from fallkit.config import ConfigError, FallkitConfig
-from fallkit.env.fall_env import FallEnv, random_end_poses
+from fallkit.env.fall_env import FallEnv
+from fallkit.poses.end_pose_set import random_end_poses
 from fallkit.eval.render import FallPainter, frame_stride, render_rollout, write_video
 from fallkit.config import RenderConfig
 from fallkit.poses.checker import PoseChecker

@@ -47,13 +47,13 @@ from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.config import RewardConfig
 from fallkit.env.rewards.tracking import blend
 from fallkit.robots.spec import RobotSpec
-from fallkit.rotations import quat_from_euler, tilt_quat
+from fallkit.rotations import tilt_quat
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.sim.base import BatchSim
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EnvConfig", "FallEnv", "random_end_poses"]
+__all__ = ["FallEnv"]
 
 
 class FallEnv(EnvBase):
@@ -354,17 +354,3 @@ def _check_inputs(
             f"reward.blend_time ({reward_cfg.blend_time} s) must not exceed env.episode_length "
             f"({env_cfg.episode_length} s): u(t) would never reach 1 (paper: T_blend <= T)"
         )
-
-
-def random_end_poses(spec: RobotSpec, n: int, generator: torch.Generator) -> EndPoseSet:
-    """n unsettled end poses: collision-free joints within limits, root pitch then yaw uniform in ±180°.
-
-    For tests and quick experiments without a dataset (`fallkit.poses.files` loads real ones): the poses
-    are not dropped and settled, so some cannot be reached at rest.
-    """
-    from fallkit.poses.checker import PoseChecker
-
-    joints = PoseChecker(spec).sample_joints(n, generator)
-    pitch, yaw = ((2.0 * torch.rand(2, n, generator=generator, dtype=torch.float64) - 1.0) * torch.pi).unbind()
-    quat = quat_from_euler(torch.zeros_like(pitch), pitch, yaw)
-    return EndPoseSet(spec.name, spec.joint_names, joints.float(), quat.float())

@@ -13,9 +13,15 @@ from dataclasses import dataclass, field
 
 import torch
 
+from fallkit.poses.checker import PoseChecker
+from fallkit.robots.spec import RobotSpec
+from fallkit.rotations import quat_from_euler
+
 
 @dataclass
 class EndPoseSet:
+    """End poses of one robot: joint angles (policy order) and settled root orientations."""
+
     robot: str
     joint_names: list[str]
     joint_pos: torch.Tensor  # [P, J] radians, policy order
@@ -37,6 +43,14 @@ class EndPoseSet:
     def to(self, device: torch.device | str) -> "EndPoseSet":
         return EndPoseSet(self.robot, self.joint_names, self.joint_pos.to(device), self.root_quat.to(device), self.names)
 
-    def subset(self, index: torch.Tensor) -> "EndPoseSet":
-        names = [self.names[i] for i in index.tolist()] if self.names else []
-        return EndPoseSet(self.robot, self.joint_names, self.joint_pos[index], self.root_quat[index], names)
+
+def random_end_poses(spec: RobotSpec, n: int, generator: torch.Generator) -> EndPoseSet:
+    """n unsettled end poses: collision-free joints within limits, root pitch then yaw uniform in ±180°.
+
+    For tests and quick experiments without a dataset (`load_end_poses` loads real ones): the poses
+    are not dropped and settled, so some cannot be reached at rest.
+    """
+    joints = PoseChecker(spec).sample_joints(n, generator)
+    pitch, yaw = ((2.0 * torch.rand(2, n, generator=generator, dtype=torch.float64) - 1.0) * torch.pi).unbind()
+    quat = quat_from_euler(torch.zeros_like(pitch), pitch, yaw)
+    return EndPoseSet(spec.name, spec.joint_names, joints.float(), quat.float())
