@@ -41,7 +41,8 @@ def main() -> None:
     from fallkit.env.fall_env import FallEnv
     from fallkit.poses.end_pose_set import random_end_poses
     from fallkit.config import FallkitConfig
-    from fallkit.eval.evaluate import POLICY, chunking, draw_trials, eval_run_config, evaluate
+    from fallkit.eval.evaluate import eval_run_config
+    from fallkit.eval.rollout import POLICY, chunking, draw_trials, evaluate
     from fallkit.rl.models import GaussianPolicyNet
     from fallkit.rl.policy import MeanAction, load_policy
     from fallkit.sim import make_sim

@@ -32,7 +32,8 @@ import numpy as np
 import torch
 
 from fallkit.api import get_robot
-from fallkit.poses.generator import EndPoseGenerator, _Candidates, settle, to_dataset
+from fallkit.poses.generator import EndPoseGenerator, _Candidates, to_dataset
+from fallkit.poses.settle import settle
 from fallkit.config import DatasetConfig
 from fallkit.poses.checker import PoseChecker
 
@@ -76,7 +77,7 @@ def main() -> None:
     probe_after = physics_probe(spec)
     load_after = os.getloadavg()[0]
     if args.out:
-        from fallkit.poses.files import save_dataset
+        from fallkit.poses.dataset import save_dataset
 
         save_dataset(args.out, to_dataset(spec, gen, cfg, "mujoco"))
         print(f"dataset: {args.out} ({os.path.getsize(args.out) / 1e6:.2f} MB)")

@@ -76,7 +76,7 @@ class WarpRaw:
     """Raw mujoco_warp on the same model and device: `substeps` x `mjw.step`, one graph."""
 
     def __init__(self, spec, num_worlds: int, device: str):
-        from fallkit.sim.warp_sim import default_buffers, init_warp, put_warp_model, use_graphs
+        from fallkit.sim.warp_setup import default_buffers, init_warp, put_warp_model, use_graphs
 
         wp = init_warp()
         import mujoco_warp as mjw
@@ -138,7 +138,7 @@ def bench_mujoco(spec, worlds: int, steps: int, threads: int, repeats: int) -> d
 
 
 def bench_warp(spec, worlds: int, steps: int, device: str, repeats: int) -> dict:
-    from fallkit.sim.warp_sim import resolve_device
+    from fallkit.sim.warp_setup import resolve_device
 
     device = resolve_device(device)
     qpos, qvel = InitialStateSampler(spec).sample(worlds, torch.Generator().manual_seed(0))

@@ -6,7 +6,6 @@ orientation metrics are all built from these few functions.
 
 from __future__ import annotations
 
-
 import torch
 
 
@@ -41,12 +40,6 @@ def quat_rotate_inverse(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return quat_rotate(quat_conj(q), v)
 
 
-def quat_from_axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    half = 0.5 * angle.unsqueeze(-1)
-    axis = axis / axis.norm(dim=-1, keepdim=True)
-    return torch.cat((torch.cos(half), torch.sin(half) * axis), dim=-1)
-
-
 def quat_from_euler(roll: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
     """q = Rz(yaw) · Ry(pitch) · Rx(roll): roll applied first, then pitch, then yaw (extrinsic)."""
     def about(axis: int, angle: torch.Tensor) -> torch.Tensor:
@@ -58,26 +51,13 @@ def quat_from_euler(roll: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) 
     return quat_mul(about(2, yaw), quat_mul(about(1, pitch), about(0, roll)))
 
 
-def yaw_of(q: torch.Tensor) -> torch.Tensor:
-    """Heading angle: direction of the body x-axis projected on the ground plane."""
-    x = quat_rotate(q, torch.tensor([1.0, 0.0, 0.0], dtype=q.dtype, device=q.device).expand_as(q[..., 1:]))
-    return torch.atan2(x[..., 1], x[..., 0])
-
-
-def yaw_quat(q: torch.Tensor) -> torch.Tensor:
-    """The pure rotation about world z by the heading of q (the path frame's orientation)."""
-    yaw = yaw_of(q)
-    zero = torch.zeros_like(yaw)
-    return quat_from_euler(zero, zero, yaw)
-
-
 def heading_quat(q: torch.Tensor) -> torch.Tensor:
     """The rotation about world z in q's swing–twist decomposition q = heading ⊗ tilt.
 
-    The path frame's orientation (paper Sec. IV-A). Unlike `yaw_quat` (x-axis
-    projection, singular at ±90° pitch: a robot lying on its back or front, the
-    most common end poses), this is continuous everywhere except upside down
-    (tilt 180°), where it falls back to the identity.
+    The path frame's orientation (paper Sec. IV-A). Unlike the heading of the body
+    x-axis projected on the ground (singular at ±90° pitch: a robot lying on its back
+    or front, the most common end poses), this is continuous everywhere except upside
+    down (tilt 180°), where it falls back to the identity.
     """
     w, z = q[..., 0], q[..., 3]
     n = torch.sqrt(w * w + z * z)
@@ -134,7 +114,6 @@ def yaw_align(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 __all__ = [
-    "quat_mul", "quat_conj", "quat_rotate", "quat_rotate_inverse", "quat_from_axis_angle",
-    "quat_from_euler", "yaw_of", "yaw_quat", "heading_quat", "tilt_quat", "gravity_in_frame", "geodesic_angle",
-    "normalize", "yaw_align",
+    "quat_mul", "quat_conj", "quat_rotate", "quat_rotate_inverse", "quat_from_euler", "heading_quat",
+    "tilt_quat", "gravity_in_frame", "geodesic_angle", "normalize", "yaw_align",
 ]  # fmt: skip

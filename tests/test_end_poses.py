@@ -13,15 +13,9 @@ import torch
 
 from fallkit.rotations import gravity_in_frame, quat_rotate
 from fallkit.config import DatasetConfig, SettleConfig
-from fallkit.poses.generator import (
-    EndPoseGenerator,
-    OrientationBins,
-    _Candidates,
-    sample_root_quat,
-    select_uniform,
-    settle,
-    uniformity,
-)
+from fallkit.poses.bins import OrientationBins, select_uniform, uniformity
+from fallkit.poses.generator import EndPoseGenerator, _Candidates, sample_root_quat
+from fallkit.poses.settle import settle
 from fallkit.poses.checker import PoseChecker
 from fallkit.sim.base import Layout
 
@@ -191,7 +185,7 @@ def test_mode_poses_writes_dataset_sheets_and_histogram(tmp_path, biped):
 
     sheet = np.asarray(Image.open(tmp_path / "run" / "poses_artist.png"))
     assert sheet.shape[0] > 300 and sheet.std() > 10  # ten rendered poses, not a blank image
-    from fallkit.poses.files import load_end_poses
+    from fallkit.poses import load_end_poses
 
     assert len(load_end_poses(out, biped, "train")) == 40 and len(load_end_poses(out, biped, "test")) == 4
     bad = subprocess.run([*cmd[:3], "mode=poses", "dataset.train=0"], capture_output=True, text=True, timeout=120)

@@ -12,19 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit.poses.files import (
-    FORMAT,
-    PoseDataset,
-    PoseFileError,
-    artist_file,
-    ground_side,
-    load_dataset,
-    load_end_poses,
-    read_artist_poses,
-    read_meta,
-    root_quat_from_pitch_roll,
-    save_dataset,
-)
+from fallkit.errors import PoseFileError
+from fallkit.poses import load_end_poses
+from fallkit.poses.artist import artist_file, ground_side, read_artist_poses, root_quat_from_pitch_roll
+from fallkit.poses.dataset import FORMAT, PoseDataset, load_dataset, read_meta, save_dataset
 from fallkit.rotations import gravity_in_frame
 from fallkit.poses.end_pose_set import EndPoseSet
 

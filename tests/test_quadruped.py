@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from fallkit.rl.checkpoint import load_checkpoint
-from fallkit.poses.files import load_end_poses
+from fallkit.poses import load_end_poses
 
 pytest.importorskip("fallkit_go1", reason="install plugins/fallkit-go1 (scripts/setup.sh does)")
 

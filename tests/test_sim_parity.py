@@ -114,7 +114,7 @@ def test_buffer_overflow_is_a_clear_error(biped):
 def test_overflow_advice_names_the_setting():
     from mujoco_warp import OverflowType
 
-    from fallkit.sim.warp_sim import _overflow_advice
+    from fallkit.sim.warp_setup import overflow_advice as _overflow_advice
 
     assert "raise sim.njmax" in _overflow_advice(int(OverflowType.NEFC), 48, 212)
     assert "sim.njmax=212" in _overflow_advice(int(OverflowType.NEFC), 48, 212)
@@ -123,7 +123,7 @@ def test_overflow_advice_names_the_setting():
 
 
 def test_default_buffers_cover_a_lying_robot(biped):
-    from fallkit.sim.warp_sim import default_buffers
+    from fallkit.sim.warp_setup import default_buffers
 
     nconmax, njmax = default_buffers(biped.mj_model())
     # 200 MuJoCo C falls of biped20 peaked at 14 contacts and 56 constraint rows per world
@@ -131,7 +131,7 @@ def test_default_buffers_cover_a_lying_robot(biped):
 
 
 def test_device_selection():
-    from fallkit.sim.warp_sim import resolve_device
+    from fallkit.sim.warp_setup import resolve_device
 
     assert resolve_device("cpu") == "cpu"
     if not torch.cuda.is_available():
@@ -145,7 +145,7 @@ def test_device_selection():
 def test_kernel_cache_location(monkeypatch, tmp_path):
     import warp as wp
 
-    from fallkit.sim.warp_sim import init_warp, warp_cache_dir
+    from fallkit.sim.warp_setup import init_warp, warp_cache_dir
 
     init_warp()  # Warp keeps one subfolder per Warp version
     assert Path(wp.config.kernel_cache_dir).is_relative_to(warp_cache_dir())

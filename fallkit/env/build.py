@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fallkit.config import FallkitConfig
 from fallkit.env.fall_env import FallEnv
-from fallkit.poses.files import load_end_poses
+from fallkit.poses import load_end_poses
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim import make_sim, sim_options
 

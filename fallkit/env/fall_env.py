@@ -33,7 +33,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from fallkit import registry
-from fallkit.config import EnvConfig
+from fallkit.config import EnvConfig, RewardConfig
 from fallkit.env.observations import (
     actor_layout,
     actor_observation,
@@ -44,11 +44,10 @@ from fallkit.env.observations import (
     planar_motion,
 )
 from fallkit.env.rewards.context import RewardContext, RewardSum
-from fallkit.config import RewardConfig
 from fallkit.env.rewards.tracking import blend
+from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import tilt_quat
-from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.sim.base import BatchSim
 
 log = logging.getLogger(__name__)
@@ -71,12 +70,11 @@ class FallEnv(EnvBase):
         n = sim.num_worlds
         super().__init__(device=sim.device, batch_size=[n])
         _check_inputs(spec, env_cfg, reward_cfg, end_poses, sim)
-        dev = self.device
         self.spec = spec
         self.env_cfg = env_cfg
         self.reward_cfg = reward_cfg
         self.sim = sim
-        self.end_poses = end_poses.to(dev)
+        self.end_poses = end_poses.to(self.device)
         self.num_envs = n
         self.dt = spec.policy_dt
         self.max_steps = max(1, round(env_cfg.episode_length / self.dt))
@@ -85,60 +83,12 @@ class FallEnv(EnvBase):
         # seeded generators owned by the env: CPU for the MuJoCo-based initial-state
         # sampler, the sim's device for everything drawn per step
         self._cpu_gen = torch.Generator()
-        self._gen = torch.Generator(device=dev)
+        self._gen = torch.Generator(device=self.device)
         self._set_seed(seed)
-
-        load = registry.load
-        self.initial_states = load("fallkit.samplers", env_cfg.samplers["initial_state"])(
-            spec, **env_cfg.initial_state.model_dump()
-        )
-        dist = env_cfg.disturbances
-        self.disturbances = None
-        if dist.enabled:
-            self.disturbances = load("fallkit.samplers", env_cfg.samplers["disturbances"])(
-                spec, n, dev, **dist.model_dump(exclude={"enabled"})
-            )
-            if self.disturbances.body_ids.numel() == 0:  # the robot names none of the roles
-                self.disturbances = None
-        self.rewards = RewardSum(reward_cfg, self.dt, dev)
-
-        f32 = dict(dtype=torch.float32, device=dev)
-        self.nominal = torch.as_tensor(spec.nominal_q(), **f32)
-        limits = torch.as_tensor(spec.joint_limits, **f32)
-        self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
-        self.sensitivity = torch.as_tensor(spec.sensitivity, **f32)
-        self._friction = torch.tensor([[spec.friction]], **f32)
-        self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
-        std = noise_std(spec, env_cfg.noise)
-        noisy = std.nonzero()
-        # noise is drawn for the measured columns only (a prefix of the layout)
-        self._noise_cols = int(noisy.max()) + 1 if len(noisy) else 0
-        self._noise_std = std[: self._noise_cols].to(dev)
-
-        j, nb = len(spec.joints), sim.state.body_vel.shape[1] - 1
-        self.step_count = torch.zeros(n, dtype=torch.long, device=dev)
-        self.end_pose_ids = torch.zeros(n, dtype=torch.long, device=dev)
-        self.goal_root_quat = torch.zeros(n, 4, **f32)  # path frame
-        self.goal_joint_pos = torch.zeros(n, j, **f32)
-        self.last_action = torch.zeros(n, j, **f32)
-        self.last_last_action = torch.zeros(n, j, **f32)
-        self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
-        self._all = torch.ones(n, dtype=torch.bool, device=dev)
-        self._no = torch.zeros(n, 1, dtype=torch.bool, device=dev)
-
-        da = sum(s for _, s in actor_layout(spec))
-        dc = sum(s for _, s in critic_layout(spec))
-        self.observation_spec = Composite(
-            policy=Unbounded((n, da), device=dev),
-            critic=Unbounded((n, dc), device=dev),
-            contact_force=Unbounded((n, len(spec.components)), device=dev),
-            shape=(n,),
-            device=dev,
-        )
-        self.action_spec = Unbounded((n, j), device=dev)
-        self.reward_spec = Unbounded((n, 1), device=dev)
-        flag = lambda: Categorical(2, (n, 1), dtype=torch.bool, device=dev)  # noqa: E731
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=dev)
+        self._make_samplers_and_rewards()
+        self._make_constants()
+        self._make_episode_buffers()
+        self._make_specs()
 
     # ---- public helpers -------------------------------------------------------------
 
@@ -299,6 +249,72 @@ class FallEnv(EnvBase):
         out.set("reward", reward.view(-1, 1))
         return out
 
+    # ---- construction -------------------------------------------------------------
+
+    def _make_samplers_and_rewards(self) -> None:
+        """The registered initial-state sampler, the disturbances (if enabled and the robot
+        names bodies to push) and the reward terms."""
+        spec, env_cfg, load = self.spec, self.env_cfg, registry.load
+        self.initial_states = load("fallkit.samplers", env_cfg.samplers["initial_state"])(
+            spec, **env_cfg.initial_state.model_dump()
+        )
+        dist = env_cfg.disturbances
+        self.disturbances = None
+        if dist.enabled:
+            self.disturbances = load("fallkit.samplers", env_cfg.samplers["disturbances"])(
+                spec, self.num_envs, self.device, **dist.model_dump(exclude={"enabled"})
+            )
+            if self.disturbances.body_ids.numel() == 0:  # the robot names none of the roles
+                self.disturbances = None
+        self.rewards = RewardSum(self.reward_cfg, self.dt, self.device)
+
+    def _make_constants(self) -> None:
+        """Robot and goal constants on the device: nominal pose, joint limits, sensitivity,
+        friction, the end poses' tilts, and the observation noise."""
+        spec, f32 = self.spec, dict(dtype=torch.float32, device=self.device)
+        self.nominal = torch.as_tensor(spec.nominal_q(), **f32)
+        limits = torch.as_tensor(spec.joint_limits, **f32)
+        self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
+        self.sensitivity = torch.as_tensor(spec.sensitivity, **f32)
+        self._friction = torch.tensor([[spec.friction]], **f32)
+        self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
+        std = noise_std(spec, self.env_cfg.noise)
+        noisy = std.nonzero()
+        # noise is drawn for the measured columns only (a prefix of the layout)
+        self._noise_cols = int(noisy.max()) + 1 if len(noisy) else 0
+        self._noise_std = std[: self._noise_cols].to(self.device)
+
+    def _make_episode_buffers(self) -> None:
+        """Per-world episode state: clock, goal, the last two actions, body motion."""
+        n, dev, f32 = self.num_envs, self.device, dict(dtype=torch.float32, device=self.device)
+        j, nb = len(self.spec.joints), self.sim.state.body_vel.shape[1] - 1
+        self.step_count = torch.zeros(n, dtype=torch.long, device=dev)
+        self.end_pose_ids = torch.zeros(n, dtype=torch.long, device=dev)
+        self.goal_root_quat = torch.zeros(n, 4, **f32)  # path frame
+        self.goal_joint_pos = torch.zeros(n, j, **f32)
+        self.last_action = torch.zeros(n, j, **f32)
+        self.last_last_action = torch.zeros(n, j, **f32)
+        self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
+        self._all = torch.ones(n, dtype=torch.bool, device=dev)
+        self._no = torch.zeros(n, 1, dtype=torch.bool, device=dev)
+
+    def _make_specs(self) -> None:
+        """TorchRL's observation, action, reward and done specs (see the module docstring)."""
+        n, dev, spec = self.num_envs, self.device, self.spec
+        da = sum(s for _, s in actor_layout(spec))
+        dc = sum(s for _, s in critic_layout(spec))
+        self.observation_spec = Composite(
+            policy=Unbounded((n, da), device=dev),
+            critic=Unbounded((n, dc), device=dev),
+            contact_force=Unbounded((n, len(spec.components)), device=dev),
+            shape=(n,),
+            device=dev,
+        )
+        self.action_spec = Unbounded((n, len(spec.joints)), device=dev)
+        self.reward_spec = Unbounded((n, 1), device=dev)
+        flag = lambda: Categorical(2, (n, 1), dtype=torch.bool, device=dev)  # noqa: E731
+        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=dev)
+
     # ---- internals ----------------------------------------------------------------
 
     def _observation(self, truncated: torch.Tensor, frame=None) -> TensorDictBase:
@@ -322,7 +338,7 @@ class FallEnv(EnvBase):
             {
                 "policy": policy,
                 "critic": critic,
-                "contact_force": st.contact_force.square().sum(dim=-1).amax(dim=1).sqrt(),
+                "contact_force": st.peak_contact_force(),
                 "done": truncated.clone(),
                 "terminated": torch.zeros_like(truncated),
                 "truncated": truncated,

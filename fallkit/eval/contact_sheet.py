@@ -17,13 +17,12 @@ matplotlib.use("Agg")  # headless; before pyplot is imported anywhere
 import matplotlib.pyplot as plt  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
 from fallkit.errors import FallkitError  # noqa: E402
 from fallkit.eval.render import FallPainter, label  # noqa: E402
 from fallkit.poses.checker import PoseChecker  # noqa: E402
-from fallkit.poses.files import artist_file, read_artist_poses, settle_artist_poses  # noqa: E402
-from fallkit.poses.generator import OrientationBins  # noqa: E402
+from fallkit.poses.artist import artist_file, read_artist_poses, settle_artist_poses  # noqa: E402
+from fallkit.poses.bins import OrientationBins  # noqa: E402
 from fallkit.robots import get_robot  # noqa: E402
 from fallkit.robots.spec import RobotSpec  # noqa: E402
 
@@ -122,15 +121,10 @@ def artist_sheet(spec: RobotSpec, source: str | Path, path: Path) -> Path:
     file = artist_file(spec) if str(source) == "artist" else Path(source)
     poses = read_artist_poses(file, spec)
     _, settled = settle_artist_poses(file, spec, poses)
-    checker = PoseChecker(spec)
-    lay = checker.layout
     n = len(poses)
-    authored = lay.qpos(
-        torch.zeros(n, 3, dtype=torch.float64),
-        torch.tensor(np.stack([p.root_quat for p in poses])),
-        torch.tensor(np.stack([p.joint_pos for p in poses])),
+    authored, _ = PoseChecker(spec).on_ground(
+        np.stack([p.root_quat for p in poses]), np.stack([p.joint_pos for p in poses]), 0.0
     )
-    authored, _ = checker.place_on_ground(authored, 0.0)
     images = render_poses(
         spec,
         np.concatenate([authored.numpy(), settled.numpy()])[np.arange(2 * n).reshape(2, n).T.ravel()],

@@ -19,8 +19,10 @@ import torch
 from fallkit.config import DatasetConfig, FallkitConfig
 from fallkit.errors import RenderError
 from fallkit.eval.contact_sheet import contact_sheet, histogram_plot
-from fallkit.poses.files import artist_file, load_dataset, read_artist_poses, save_dataset, settle_artist_poses
-from fallkit.poses.generator import EndPoseGenerator, OrientationBins, format_histogram, to_dataset
+from fallkit.poses.artist import artist_file, read_artist_poses, settle_artist_poses
+from fallkit.poses.bins import OrientationBins, format_histogram
+from fallkit.poses.dataset import load_dataset, save_dataset
+from fallkit.poses.generator import EndPoseGenerator, to_dataset
 from fallkit.robots import robot_spec
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim import Layout, sim_options

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from fallkit.config import FallkitConfig, RenderConfig
 from fallkit.errors import ConfigError, RenderError
-from fallkit.eval.evaluate import Rollout, draw_trials, make_eval_env, prepare, rollout
+from fallkit.eval.evaluate import make_eval_env, prepare
+from fallkit.eval.rollout import Rollout, draw_trials, rollout
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
@@ -127,13 +128,9 @@ class FallPainter:
 def ghost_qpos(spec: RobotSpec, target_joint_pos: torch.Tensor, target_quat: torch.Tensor, final_qpos: torch.Tensor) -> np.ndarray:
     """The end pose where the robot ended: at its final xy, turned to its heading, on the ground [k, nq]."""
     checker = PoseChecker(spec)
-    lay = checker.layout
-    r = lay.root_qpos
-    final_quat = final_qpos[:, r + 3 : r + 7].double()
-    quat = yaw_align(target_quat.double(), final_quat)
-    root = final_qpos[:, r : r + 3].double().clone()
-    q = lay.qpos(root, quat, target_joint_pos.double())
-    q, _ = checker.place_on_ground(q, clearance=0.0)
+    r = checker.layout.root_qpos
+    quat = yaw_align(target_quat.double(), final_qpos[:, r + 3 : r + 7].double())
+    q, _ = checker.on_ground(quat, target_joint_pos, clearance=0.0, root_pos=final_qpos[:, r : r + 3])
     return q.numpy()
 
 

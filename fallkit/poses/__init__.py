@@ -1,7 +1,18 @@
 """End poses: the one home of everything about the poses a fall should end in (paper Sec. IV-C).
 
-The set type (`EndPoseSet`), the self-collision checker (`PoseChecker`), settling a
-pose by dropping it, orientation bins, the physics-informed generator, the versioned
-dataset file, artist pose files, and `load_end_poses`, which turns any end-pose
-source a config names into an `EndPoseSet`.
+- `end_pose_set`: the set type `EndPoseSet` and `random_end_poses` (unsettled, for tests);
+- `checker`: `PoseChecker`, self-collision, the lowest point, placing poses on the ground;
+- `settle`: dropping poses with frozen joints until they rest;
+- `bins`: orientation bins and the uniform selection over them;
+- `generator`: the physics-informed generator of datasets (config section `dataset:`);
+- `dataset`: the versioned dataset file (.npz);
+- `artist`: artist pose files (.yaml);
+- `sources`: `load_end_poses`, which turns any end-pose source a config names
+  (`env.poses`, `eval.poses`) into an `EndPoseSet`.
 """
+
+from fallkit.poses.checker import PoseChecker
+from fallkit.poses.end_pose_set import EndPoseSet, random_end_poses
+from fallkit.poses.sources import load_end_poses
+
+__all__ = ["EndPoseSet", "PoseChecker", "load_end_poses", "random_end_poses"]

@@ -81,6 +81,23 @@ class PoseChecker:
         out[:, rz] = clearance - lowest.to(out.dtype)
         return out, colliding
 
+    def on_ground(
+        self,
+        root_quat: torch.Tensor | np.ndarray,
+        joint_pos: torch.Tensor | np.ndarray,
+        clearance: float = 0.0,
+        root_pos: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Poses [k] as MuJoCo qpos [k, nq] (float64), lowest geom `clearance` above the floor; and self-collision [k].
+
+        root_quat [k, 4] and joint_pos [k, J] (policy order); root_pos [k, 3] gives the
+        root's x and y (default 0), its z is replaced by the height that places the pose.
+        """
+        quat = torch.as_tensor(root_quat, dtype=torch.float64)
+        joints = torch.as_tensor(joint_pos, dtype=torch.float64)
+        pos = torch.zeros(len(quat), 3, dtype=torch.float64) if root_pos is None else root_pos.to(torch.float64)
+        return self.place_on_ground(self.layout.qpos(pos, quat, joints), clearance)
+
     def sample_joints(
         self, n: int, generator: torch.Generator, spread: float = 1.0, max_rounds: int = 200
     ) -> torch.Tensor:

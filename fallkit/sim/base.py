@@ -23,6 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Protocol
 
+import mujoco
+import numpy as np
 import torch
 
 from fallkit.robots.spec import RobotSpec
@@ -51,6 +53,14 @@ class SimState:
 
     def clone(self) -> "SimState":
         return SimState(**{f.name: _clone(getattr(self, f.name)) for f in fields(self)})
+
+    def contact_force_norm(self) -> torch.Tensor:
+        """|f_c| [N, S, C]: the magnitude of each component's contact force at each substep [N]."""
+        return self.contact_force.norm(dim=-1)
+
+    def peak_contact_force(self) -> torch.Tensor:
+        """[N, C]: the largest |f_c| on each component over the physics substeps of the last step [N]."""
+        return self.contact_force_norm().amax(dim=1)
 
 
 def _clone(t: torch.Tensor | None) -> torch.Tensor | None:
@@ -100,8 +110,6 @@ class Layout:
     """Index maps between MuJoCo's layout and policy order, shared by the backends."""
 
     def __init__(self, spec: RobotSpec):
-        import mujoco
-
         m = spec.mj_model()
         self.nq, self.nv, self.nbody = m.nq, m.nv, m.nbody
         root = m.body(spec.root_body)
@@ -180,6 +188,37 @@ class Layout:
             body_pos=body_pos,
             body_vel=body_vel,
         )
+
+    def write_rows(
+        self,
+        state: SimState,
+        ids: torch.Tensor | np.ndarray,
+        qpos: torch.Tensor,
+        qvel: torch.Tensor,
+        body_pos: torch.Tensor | None = None,
+        body_vel: torch.Tensor | None = None,
+    ) -> None:
+        """Refresh the handed-out `state` of worlds `ids` that were just reset.
+
+        qpos/qvel [len(ids), nq/nv] (and body_pos/body_vel when the sim keeps body state)
+        are those worlds' float32 rows on the state's device; the quantities a step
+        measures (accelerations, torques, contact forces) become 0.
+        """
+        st, idx = state, self.on(state.qpos.device)
+        st.qpos[ids] = qpos
+        st.qvel[ids] = qvel
+        r, v = self.root_qpos, self.root_qvel
+        st.root_pos[ids] = st.qpos[ids, r : r + 3]
+        st.root_quat[ids] = st.qpos[ids, r + 3 : r + 7]
+        st.root_lin_vel[ids] = st.qvel[ids, v : v + 3]
+        st.root_ang_vel[ids] = st.qvel[ids, v + 3 : v + 6]
+        st.joint_pos[ids] = st.qpos[ids][:, idx.joint_qpos]
+        st.joint_vel[ids] = st.qvel[ids][:, idx.joint_qvel]
+        if body_pos is not None:
+            st.body_pos[ids] = body_pos
+            st.body_vel[ids] = body_vel
+        for name in ("root_lin_acc", "joint_acc", "joint_torque", "contact_force"):
+            getattr(st, name)[ids] = 0.0
 
     def qpos(
         self, root_pos: torch.Tensor, root_quat: torch.Tensor, joint_pos: torch.Tensor

@@ -86,15 +86,9 @@ class MujocoSim:
         qvel = np.asarray(qvel.detach().cpu(), dtype=np.float64)
         if not (np.isfinite(qpos).all() and np.isfinite(qvel).all()):
             raise ValueError("sim.reset: qpos/qvel contain NaN or Inf")
-        # Batch.reset discards writes made before it, so reset first, then write.
-        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
-        self._qpos[ids] = qpos
-        self._qvel[ids] = qvel
-        self._ctrl[ids] = qpos[:, self.layout.joint_qpos.numpy()]  # hold the reset pose
         self._reset_qpos[ids] = qpos
         self._reset_qvel[ids] = qvel
-        self.batch.forward(ids)
-        self._write_rows(ids, qvel)
+        self._restart(ids, qpos, qvel)
 
     def step(self, joint_targets: torch.Tensor) -> SimState:
         targets = np.asarray(joint_targets.detach().cpu(), dtype=np.float64)
@@ -148,7 +142,7 @@ class MujocoSim:
             self.set_gain_scale(state["gain_scale"][:, 0])
         self.num_unstable = int(state["num_unstable"])
         self.batch.forward()
-        self._write_rows(np.arange(self.num_worlds), self._qvel)
+        self._write_rows(np.arange(self.num_worlds))
 
     # ---- internals --------------------------------------------------------------------
 
@@ -167,34 +161,28 @@ class MujocoSim:
             "sim: %d world(s) became unstable (NaN/Inf, speed > %g, or a MuJoCo warning) and were reset; "
             "%d so far", len(ids), self.max_speed, self.num_unstable,
         )
-        qpos, qvel = self._reset_qpos[ids].copy(), self._reset_qvel[ids].copy()
+        self._restart(ids, self._reset_qpos[ids].copy(), self._reset_qvel[ids].copy())
+
+    def _restart(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """MuJoCo's reset of worlds `ids` (warm start, forces, time), then these states, holding their pose."""
+        # Batch.reset discards writes made before it, so reset first, then write.
         self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
         self._qpos[ids] = qpos
         self._qvel[ids] = qvel
-        self._ctrl[ids] = qpos[:, self.layout.joint_qpos.numpy()]
+        self._ctrl[ids] = qpos[:, self.layout.joint_qpos.numpy()]  # hold the reset pose
         self.batch.forward(ids)
-        self._write_rows(ids, qvel)
+        self._write_rows(ids)
 
-    def _write_rows(self, ids: np.ndarray, qvel: np.ndarray) -> None:
+    def _write_rows(self, ids: np.ndarray) -> None:
         """Refresh the handed-out state of worlds that were just reset."""
-        st = self._state
-        t = torch.from_numpy
-        lay = self.layout
-        st.qpos[ids] = t(self._qpos[ids]).float()
-        st.qvel[ids] = t(self._qvel[ids]).float()
-        r = lay.root_qpos
-        st.root_pos[ids] = st.qpos[ids, r : r + 3]
-        st.root_quat[ids] = st.qpos[ids, r + 3 : r + 7]
-        v = lay.root_qvel
-        st.root_lin_vel[ids] = st.qvel[ids, v : v + 3]
-        st.root_ang_vel[ids] = st.qvel[ids, v + 3 : v + 6]
-        st.joint_pos[ids] = st.qpos[ids][:, lay.joint_qpos]
-        st.joint_vel[ids] = st.qvel[ids][:, lay.joint_qvel]
-        if self.body_state:
-            st.body_pos[ids] = torch.tensor(self._xpos[ids], dtype=torch.float32)
-            st.body_vel[ids] = torch.tensor(self._cvel[ids], dtype=torch.float32)
-        for name in ("root_lin_acc", "joint_acc", "joint_torque", "contact_force"):
-            getattr(st, name)[ids] = 0.0
+        self.layout.write_rows(
+            self._state,
+            ids,
+            torch.from_numpy(self._qpos[ids]).float(),
+            torch.from_numpy(self._qvel[ids]).float(),
+            body_pos=torch.tensor(self._xpos[ids], dtype=torch.float32) if self.body_state else None,
+            body_vel=torch.tensor(self._cvel[ids], dtype=torch.float32) if self.body_state else None,
+        )
 
     def _read(self, sensordata: np.ndarray, torque: np.ndarray, qvel_before: np.ndarray, unstable: np.ndarray) -> SimState:
         qvel64 = torch.from_numpy(self._qvel)

@@ -45,8 +45,7 @@ class InitialStateSampler:
         # pitch first, then roll (both about world axes), then the heading
         tilt_q = quat_mul(quat_from_euler(roll, zero, zero), quat_from_euler(zero, pitch, zero))
         quat = quat_mul(quat_from_euler(zero, zero, yaw), tilt_q)
-        qpos = self.layout.qpos(torch.zeros(n, 3, dtype=torch.float64), quat, joints)
-        qpos, _ = self.checker.place_on_ground(qpos, c.clearance)
+        qpos, _ = self.checker.on_ground(quat, joints, c.clearance)
         qvel = self.layout.qvel(
             uniform(n, 3, half=c.root_lin_vel), uniform(n, 3, half=c.root_ang_vel), uniform(n, len(joints[0]), half=c.joint_vel)
         )

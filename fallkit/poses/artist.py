@@ -1,35 +1,15 @@
-"""End-pose files: generated datasets (.npz) and artist pose files (.yaml).
+"""Artist pose files: human-written end poses in YAML, validated and settled.
 
-`load_end_poses(source, spec, split, fraction)` is the one way in for every
-user of end poses (training, evaluation, rendering). `source` is
-
-- a dataset file `*.npz` written by `python -m fallkit mode=poses`,
-- an artist pose file `*.yaml` (human-written; settled by the generator's drop
-  procedure when loaded),
-- `"default"`: the robot's shipped dataset `<robot>_poses.npz` next to its MJCF
-  (for biped20: fallkit/robots/assets/biped20_poses.npz),
-- `"artist"`: the robot's shipped artist poses `<robot>_artist_poses.yaml`.
-
-The dataset format, version 1 (numpy `.npz`, no pickles):
-
-    joint_pos   [P, J] float32  settled joint angles [rad], columns in `joint_names` order
-    root_quat   [P, 4] float32  settled root orientation (w, x, y, z), world frame, z up
-    root_height [P]    float32  settled root height above the floor [m]
-    split       [P]    <U5      "train" | "test"
-    bin         [P]    int16    orientation bin (see `meta.bins`)
-    joint_names [J]    <U..     joint names
-    meta        []     <U..     JSON: format, version, robot, model_hash, seed,
-                                generator config, orientation bins, statistics
-
-Rows of each split are stored in random order, so the first k rows of a split
-are a uniform random subset of it (`fraction`, the paper's dataset-size study).
-See docs/poses.md for authoring artist poses.
+An artist file names, per pose, an angle for every joint and the side of the
+robot that faces the ground (optionally refined by pitch and roll). Reading it
+checks every key, angle, limit and self-collision, failing with one line
+'<file>:<line>: <where>: <problem>'; `settle_artist_poses` then drops the poses
+as the generator does. See docs/poses.md for authoring artist poses.
 """
 
 from __future__ import annotations
 
 import difflib
-import json
 import logging
 import math
 import re
@@ -37,185 +17,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 import torch
 import yaml
 
+from fallkit.config import SettleConfig
 from fallkit.errors import PoseFileError
+from fallkit.poses.checker import PoseChecker
+from fallkit.poses.end_pose_set import EndPoseSet
+from fallkit.poses.settle import settle
 from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import gravity_in_frame, quat_from_euler, quat_mul
-from fallkit.poses.end_pose_set import EndPoseSet
+from fallkit.sim import Layout
 
 log = logging.getLogger(__name__)
-
-FORMAT = "fallkit.end_poses"
-VERSION = 1
-SPLITS = ("train", "test")
-_ARRAYS = ("joint_pos", "root_quat", "root_height", "split", "bin", "joint_names", "meta")
-
-
-
-
-# ---- datasets -------------------------------------------------------------------------------
-
-
-@dataclass
-class PoseDataset:
-    """A generated end-pose dataset with its provenance."""
-
-    robot: str
-    model_hash: str
-    joint_names: list[str]
-    joint_pos: np.ndarray  # [P, J] float32, radians
-    root_quat: np.ndarray  # [P, 4] float32
-    root_height: np.ndarray  # [P] float32
-    split: np.ndarray  # [P] "train" | "test"
-    bin: np.ndarray  # [P] int16
-    meta: dict[str, Any]
-
-    def __len__(self) -> int:
-        return len(self.joint_pos)
-
-    def rows(self, split: str) -> np.ndarray:
-        return np.flatnonzero(self.split == split)
-
-
-def save_dataset(path: str | Path, ds: PoseDataset) -> Path:
-    """Write `ds` as a compressed .npz (format above); returns the path."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise PoseFileError(f"{path}: a pose dataset file must end in .npz")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"format": FORMAT, "version": VERSION, "robot": ds.robot, "model_hash": ds.model_hash, **ds.meta}
-    with open(path, "wb") as f:  # a file object: numpy would append .npz to other names
-        np.savez_compressed(
-            f,
-            joint_pos=ds.joint_pos.astype(np.float32),
-            root_quat=ds.root_quat.astype(np.float32),
-            root_height=ds.root_height.astype(np.float32),
-            split=ds.split.astype("<U5"),
-            bin=ds.bin.astype(np.int16),
-            joint_names=np.array(ds.joint_names),
-            meta=np.array(json.dumps(meta)),
-        )
-    return path
-
-
-def read_meta(path: str | Path) -> dict[str, Any]:
-    """The provenance of a dataset file, without loading its arrays."""
-    path = Path(path)
-    if not path.is_file():
-        raise PoseFileError(f"{path}: pose dataset not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-    except Exception as exc:  # not a zip, no meta, bad JSON
-        raise PoseFileError(f"{path}: not a fallkit pose dataset ({type(exc).__name__}: {exc})") from None
-    if meta.get("format") != FORMAT:
-        raise PoseFileError(f"{path}: not a fallkit pose dataset (format {meta.get('format')!r})")
-    if meta.get("version") != VERSION:
-        raise PoseFileError(
-            f"{path}: dataset format version {meta.get('version')} is not supported by this fallkit "
-            f"(reads version {VERSION}); regenerate it with python -m fallkit mode=poses"
-        )
-    return meta
-
-
-def load_dataset(path: str | Path) -> PoseDataset:
-    """Read a dataset file (format and version checked, not yet the robot)."""
-    path = Path(path)
-    meta = read_meta(path)
-    with np.load(path, allow_pickle=False) as z:
-        missing = [k for k in _ARRAYS if k not in z.files]
-        if missing:
-            raise PoseFileError(f"{path}: pose dataset lacks the arrays {missing}")
-        a = {k: z[k] for k in _ARRAYS}
-    p, j = a["joint_pos"].shape if a["joint_pos"].ndim == 2 else (-1, -1)
-    shapes_ok = (
-        j == len(a["joint_names"])
-        and a["root_quat"].shape == (p, 4)
-        and a["root_height"].shape == (p,)
-        and a["split"].shape == (p,)
-        and a["bin"].shape == (p,)
-    )
-    if not shapes_ok:
-        raise PoseFileError(f"{path}: pose dataset arrays have inconsistent shapes")
-    return PoseDataset(
-        robot=meta["robot"],
-        model_hash=meta["model_hash"],
-        joint_names=[str(n) for n in a["joint_names"]],
-        joint_pos=a["joint_pos"],
-        root_quat=a["root_quat"],
-        root_height=a["root_height"],
-        split=a["split"],
-        bin=a["bin"],
-        meta=meta,
-    )
-
-
-def check_robot(ds: PoseDataset | dict[str, Any], spec: RobotSpec, path: str | Path) -> None:
-    """Refuse a dataset made for another robot body (model hash) or with other joints.
-
-    The model hash covers everything that shapes the simulated body (MJCF,
-    joints, gains, timestep). A robot that differs only in its sensitivity
-    weights or component grouping (biped20_battery) has the same body, so the
-    same poses are valid for it.
-    """
-    robot, model_hash = (ds["robot"], ds["model_hash"]) if isinstance(ds, dict) else (ds.robot, ds.model_hash)
-    if model_hash != spec.model_hash():
-        same = robot == spec.name
-        raise PoseFileError(
-            f"{path}: pose dataset made for robot '{robot}' (model hash {model_hash}), but robot '{spec.name}' "
-            f"has model hash {spec.model_hash()}"
-            + (": its MJCF, joints or timestep changed since" if same else ": another robot")
-            + f"; generate poses for it with: python -m fallkit mode=poses robot={spec.name}"
-        )
-    if isinstance(ds, PoseDataset) and ds.joint_names != spec.joint_names:
-        raise PoseFileError(f"{path}: dataset joints {ds.joint_names} differ from robot '{spec.name}' joints {spec.joint_names}")
-    if robot != spec.name:
-        log.info("end poses: %s was made for '%s', the same body as '%s' (model hash %s)", path, robot, spec.name, model_hash)
-
-
-def _take(n: int, fraction: float, where: str) -> int:
-    if not (isinstance(fraction, (int, float)) and 0.0 < fraction <= 1.0):
-        raise PoseFileError(f"{where}: fraction must be in (0, 1], got {fraction!r}")
-    return max(1, round(fraction * n))
-
-
-def dataset_end_poses(ds: PoseDataset, split: str, fraction: float, path: str | Path) -> EndPoseSet:
-    if split not in SPLITS:
-        raise PoseFileError(f"{path}: split must be one of {list(SPLITS)}, got {split!r}")
-    rows = ds.rows(split)
-    if len(rows) == 0:
-        raise PoseFileError(f"{path}: the dataset has no '{split}' poses")
-    rows = rows[: _take(len(rows), fraction, str(path))]  # stored in random order: a prefix is a random subset
-    return EndPoseSet(
-        robot=ds.robot,
-        joint_names=list(ds.joint_names),
-        joint_pos=torch.from_numpy(ds.joint_pos[rows].astype(np.float32)),
-        root_quat=torch.from_numpy(ds.root_quat[rows].astype(np.float32)),
-    )
-
-
-def default_dataset(spec: RobotSpec) -> Path:
-    """The robot's shipped dataset: <robot>_poses.npz next to its MJCF, or one made for the same body."""
-    folder = Path(spec.mjcf).parent
-    own = folder / f"{spec.name}_poses.npz"
-    if own.is_file():
-        return own
-    for other in sorted(folder.glob("*_poses.npz")):
-        try:
-            if read_meta(other).get("model_hash") == spec.model_hash():
-                return other
-        except PoseFileError:
-            continue
-    raise PoseFileError(
-        f"robot '{spec.name}' ships no end-pose dataset ({own} not found); generate one with: "
-        f"python -m fallkit mode=poses robot={spec.name} dataset.out={own}"
-    )
-
-
-# ---- artist poses -------------------------------------------------------------------------------
 
 # side of the robot that faces the ground -> (pitch, roll) in degrees of the canonical orientation
 GROUND_SIDES: dict[str, tuple[float, float]] = {
@@ -448,10 +264,7 @@ def read_artist_poses(path: str | Path, spec: RobotSpec) -> list[ArtistPose]:
 
 
 def _check_self_collision(path: Path, spec: RobotSpec, poses: list[ArtistPose]) -> None:
-    import mujoco
-
-    from fallkit.sim.base import Layout
-
+    """Refuse the first pose whose geoms touch each other, naming up to four touching pairs."""
     m = spec.mj_model()
     d = mujoco.MjData(m)
     lay = Layout(spec)
@@ -467,18 +280,13 @@ def _check_self_collision(path: Path, spec: RobotSpec, poses: list[ArtistPose]) 
 
 def settle_artist_poses(path: str | Path, spec: RobotSpec, poses: list[ArtistPose]) -> tuple[EndPoseSet, torch.Tensor]:
     """Drop the authored poses as the generator does; (settled EndPoseSet, settled qpos [n, nq])."""
-    from fallkit.poses.generator import settle
-    from fallkit.config import SettleConfig
-    from fallkit.poses.checker import PoseChecker
-    from fallkit.sim.base import Layout
-
     cfg = SettleConfig()
-    lay = Layout(spec)
     n = len(poses)
     joints = torch.tensor(np.stack([p.joint_pos for p in poses]))
     quat = torch.tensor(np.stack([p.root_quat for p in poses]))
-    qpos = lay.qpos(torch.zeros(n, 3, dtype=torch.float64), quat, joints)
-    qpos, _ = PoseChecker(spec, chunk=max(1, n)).place_on_ground(qpos, cfg.drop_height)
+    checker = PoseChecker(spec, chunk=max(1, n))
+    lay = checker.layout
+    qpos, _ = checker.on_ground(quat, joints, cfg.drop_height)
     res = settle(spec, qpos, cfg)
     for i in np.flatnonzero(~res.settled.numpy()):
         raise PoseFileError(
@@ -515,30 +323,3 @@ def artist_file(spec: RobotSpec) -> Path:
     if others:
         return others[0]
     raise PoseFileError(f"robot '{spec.name}' ships no artist poses ({own} not found)")
-
-
-# ---- the one entry point --------------------------------------------------------------------------
-
-
-def load_end_poses(source: str | Path, spec: RobotSpec, split: str = "train", fraction: float = 1.0) -> EndPoseSet:
-    """End poses for `spec` from a dataset (.npz), an artist file (.yaml), "default" or "artist".
-
-    split: "train" | "test" (datasets; artist files have no split and ignore it).
-    fraction: (0, 1], the first round(fraction × P) poses (at least one); nested
-    and deterministic, a uniform random subset for generated datasets.
-    """
-    if str(source) == "default":
-        path = default_dataset(spec)
-    elif str(source) == "artist":
-        path = artist_file(spec)
-    else:
-        path = Path(source)
-    if path.suffix == ".npz":
-        ds = load_dataset(path)
-        check_robot(ds, spec, path)
-        return dataset_end_poses(ds, split, fraction, path)
-    if path.suffix in (".yaml", ".yml"):
-        poses = read_artist_poses(path, spec)
-        poses = poses[: _take(len(poses), fraction, str(path))]
-        return settle_artist_poses(path, spec, poses)[0]
-    raise PoseFileError(f"{path}: unknown end-pose source; expected a .npz dataset, a .yaml pose file, 'default' or 'artist'")

@@ -1,0 +1,118 @@
+"""What a training run learns in a wall-clock budget, judged by the paper's metrics (issue 13).
+
+Trains biped20 with `train=quick` (or `sim=warp` on a GPU) for `--minutes` per seed, exactly
+as the README's main job does (`python -m fallkit …`, which ends by evaluating the final
+policy: 256 falls of the test split, eval seed, no noise or disturbances, paired against the
+standard strategies on the same initial states and end poses), then reads each run's
+eval.json and reports, per metric, the policy's mean over the best standard strategy's:
+
+  max_impact_ratio        mean max impact force            (lower is better; target <= 0.85)
+  mje_ratio               mean joint tracking error        (target <= 0.2)
+  mroe_ratio              mean root orientation error      (target <= 0.75)
+  fall_mean_impact_ratio  mean impact before coming to rest (target <= 0.95)
+
+"seek" — setpoints blended from the fall's starting joints to the target joints by u(t),
+no learning — is reported beside them as a reference, never counted as a strategy.
+
+    python benchmarks/learning.py [--minutes 15] [--backend mujoco|warp] [--seeds 1] [-- key=value …]
+
+Extra Hydra overrides after `--` go to the training (e.g. `-- train.init_noise_std=0.5`), so
+every change is measured the same way. The last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+METRICS = {
+    "max_impact_ratio": "max_impact_force",
+    "mroe_ratio": "mroe",
+    "mje_ratio": "mje",
+    "fall_mean_impact_ratio": "fall_mean_impact_force",
+}
+STRATEGIES = ("zero_torque", "damping", "freeze")
+REFERENCE = "seek"
+
+
+def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
+    """One `python -m fallkit` training run (ending in its evaluation); its eval.json and log sizes."""
+    backend = ["sim=warp", f"sim.num_envs={args.envs or 4096}"] if args.backend == "warp" else []
+    if args.backend == "mujoco" and args.envs:
+        backend.append(f"sim.num_envs={args.envs}")
+    cmd = [
+        sys.executable, "-m", "fallkit", "robot=biped20", "train=quick", f"train.max_minutes={args.minutes}",
+        f"seed={seed}", f"eval.trials={args.trials}", f"hydra.run.dir={run_dir}", *backend, *args.overrides,
+    ]  # fmt: skip
+    started = time.monotonic()
+    subprocess.run(cmd, check=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    wall = time.monotonic() - started
+    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
+    resolved = yaml.safe_load((run_dir / "resolved_config.yaml").read_text())
+    num_envs, steps = resolved["sim"]["num_envs"], resolved["train"]["num_steps"]
+    return {
+        "seed": seed,
+        "run_dir": str(run_dir),
+        "eval": json.loads((run_dir / "eval.json").read_text()),
+        "iterations": len(rows),
+        "env_steps": len(rows) * num_envs * steps,
+        "wall_s": wall,
+    }
+
+
+def ratios(summary: dict) -> dict:
+    """Policy (and seek) over the best standard strategy, per metric, from one eval.json."""
+    out = {}
+    for key, metric in METRICS.items():
+        best = min(summary[s][metric]["mean"] for s in STRATEGIES)
+        out[key] = summary["policy"][metric]["mean"] / best
+        if REFERENCE in summary:
+            out[f"seek_{key}"] = summary[REFERENCE][metric]["mean"] / best
+    return out
+
+
+def absolute(summary: dict) -> dict:
+    names = ["policy", *STRATEGIES, *([REFERENCE] if REFERENCE in summary else [])]
+    return {n: {m: round(summary[n][m]["mean"], 4) for m in METRICS.values()} for n in names}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--minutes", type=float, default=15.0, help="training budget per seed")
+    p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
+    p.add_argument("--seeds", type=int, default=1, help="seeds 0 … n-1, one training each")
+    p.add_argument("--envs", type=int, default=0, help="sim.num_envs (default: train=quick's 256; warp 4096)")
+    p.add_argument("--trials", type=int, default=256, help="evaluation falls per strategy")
+    p.add_argument("--out", default="runs/learning", help="run directories go here")
+    p.add_argument("overrides", nargs="*", help="Hydra overrides for the training, after --")
+    args = p.parse_args()
+
+    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
+    runs = [train_and_evaluate(args, s, Path(args.out) / stamp / f"seed{s}") for s in range(args.seeds)]
+    per_seed = [{**ratios(r["eval"]), "seed": r["seed"], "iterations": r["iterations"]} for r in runs]
+    result = {k: statistics.median(r[k] for r in per_seed) for k in per_seed[0] if k not in ("seed", "iterations")}
+    result.update(
+        backend=args.backend,
+        minutes=args.minutes,
+        seeds=args.seeds,
+        overrides=args.overrides,
+        iterations=statistics.median(r["iterations"] for r in runs),
+        env_steps=statistics.median(r["env_steps"] for r in runs),
+        absolute=[absolute(r["eval"]) for r in runs],
+        per_seed=per_seed,
+        run_dirs=[r["run_dir"] for r in runs],
+    )
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

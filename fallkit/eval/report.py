@@ -1,0 +1,113 @@
+"""mode=eval's outputs: eval.json (one object per strategy), eval.md (tables),
+eval_trials.npz (every per-trial figure), the PNG plots of `fallkit.eval.plots`, and
+the terminal table."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from fallkit.eval import plots
+from fallkit.eval.metrics import TrialMetrics, summarize_trials
+from fallkit.eval.rollout import gain_scales
+
+log = logging.getLogger(__name__)
+
+
+def write_results(results: dict[str, TrialMetrics], components: list[str], info: dict, run_dir: Path) -> dict:
+    """eval.json, eval.md, eval_trials.npz and the plots; returns the eval.json object."""
+    summary = {
+        name: {"gain_scale": gain_scales([name])[0], **summarize_trials(m, components)} for name, m in results.items()
+    }
+    (run_dir / "eval.json").write_text(json.dumps(summary, indent=2))
+    np.savez_compressed(
+        run_dir / "eval_trials.npz",
+        components=np.array(components),
+        **{f"{s}/{key}": v for s, m in results.items() for key, v in m.arrays().items()},
+    )
+    title = f"{info['robot']}: {info['trials']} falls per strategy"
+    figures = plots.plot_all(results, components, run_dir, title)
+    (run_dir / "eval.md").write_text(markdown_report(summary, info, [f.name for f in figures]))
+    unstable = {n: s["unstable_trials"] for n, s in summary.items() if s["unstable_trials"]}
+    if unstable:
+        log.warning("falls restarted by the simulator (unstable), per strategy: %s", unstable)
+    return summary
+
+
+# ---- tables ------------------------------------------------------------------------------
+
+_METRICS = [
+    ("max_impact_force", "max impact [N]", "{:.0f}"),
+    ("mean_impact_force", "mean impact [N]", "{:.0f}"),
+    ("fall_mean_impact_force", "mean impact, fall phase [N]", "{:.0f}"),
+    ("mroe", "MROE [rad]", "{:.2f}"),
+    ("mje", "MJE [rad]", "{:.2f}"),
+]
+
+
+def _cells(s: dict, template: str) -> list[str]:
+    """One cell per metric of strategy summary `s`: `template` filled with its mean, std, median and p95."""
+    cells = []
+    for key, _, fmt in _METRICS:
+        v = s[key]
+        cells.append(template.format(*(fmt.format(v[stat]) for stat in ("mean", "std", "median", "p95"))))
+    return cells
+
+
+def text_table(summary: dict) -> str:
+    """A compact terminal table: mean ± std (median / p95) of each metric."""
+    head = f"{'strategy':12s}" + "".join(f"{label:>30s}" for _, label, _ in _METRICS)
+    lines = [head]
+    for name, s in summary.items():
+        lines.append(f"{name:12s}" + "".join(f"{c:>30s}" for c in _cells(s, "{} ± {} ({}/{})")))
+    lines.append("cells: mean ± std (median/p95) over trials")
+    return "\n".join(lines)
+
+
+def markdown_report(summary: dict, info: dict, figures: list[str]) -> str:
+    """eval.md: what was run, the metric table, per-component figures, the plots."""
+    names = list(summary)
+    out = [f"# Evaluation: {info['robot']}", ""]
+    out += [
+        f"- policy: `{info['checkpoint']}`" if info["checkpoint"] else "- policy: none (standard strategies only)",
+        f"- {info['trials']} falls per strategy, {info['seconds']:.2f} s each, "
+        f"the same initial states and end poses for every strategy (seed {info['seed']})",
+        f"- end poses: {info['poses']}",
+        f"- took {info['elapsed']:.1f} s",
+        "",
+        "## Metrics (paper Sec. V-B)",
+        "",
+        "mean ± std, then median / 95th percentile, over trials.",
+        "",
+        "| strategy | " + " | ".join(label for _, label, _ in _METRICS) + " | unstable |",
+        "|---|" + "---|" * (len(_METRICS) + 1),
+    ]
+    for n in names:
+        s = summary[n]
+        out.append(f"| {n} | " + " | ".join(_cells(s, "{} ± {}<br>{} / {}")) + f" | {s['unstable_trials']} |")
+    out += [
+        "",
+        "- max impact: the largest contact force on any component during the fall (every physics substep).",
+        "- mean impact: the maximum over components of the time-mean contact force on that component.",
+        "  Once the robot lies still this is dominated by its resting weight, so the fall-phase column",
+        "  averages only over the steps before the robot first comes to rest.",
+        "- MROE: geodesic distance between the target root orientation, turned about the vertical to",
+        "  match the robot, and the root orientation at the last step. MJE: mean |q − q̂| at the last step.",
+        "",
+        "## Per component: max impact force [N], median / 95th percentile",
+        "",
+    ]
+    comps = list(summary[names[0]]["per_component"])
+    out += ["| strategy | " + " | ".join(comps) + " |", "|---|" + "---|" * len(comps)]
+    for n in names:
+        pc = summary[n]["per_component"]
+        out.append(
+            f"| {n} | "
+            + " | ".join(f"{pc[c]['max_impact_force']['median']:.0f} / {pc[c]['max_impact_force']['p95']:.0f}" for c in comps)
+            + " |"
+        )
+    out += ["", "## Plots", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    return "\n".join(out)

@@ -1,0 +1,128 @@
+"""Orientation bins of settled poses, and the choice of how many poses each bin keeps.
+
+Settled poses are binned by the direction of gravity in the root frame (an
+equal-area grid on the unit sphere, `OrientationBins`); `select_uniform` thins
+the over-full bins so the covered bins hold equally many poses (paper Sec. IV-C,
+step 5), `uniformity` measures how well that worked and `format_histogram`
+prints the bins as a table.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from fallkit.rotations import gravity_in_frame
+
+
+class OrientationBins:
+    """Equal-area bins of the unit sphere for the ground direction in the root frame.
+
+    The ground direction d = -R(q)ᵀ e_z names the side of the robot that faces
+    the ground (+x front, -x back, +y left, -y right, -z feet, +z head). Bands
+    are equal steps of d_z (Archimedes: equal areas), sectors equal steps of the
+    azimuth with sector 0 centred on +x (lying on the front), so front, back and
+    both sides each sit in the middle of a sector. With an even number of bands,
+    lying flat (d_z = 0) is on a band boundary: slight tilts towards head or feet
+    land in the two neighbouring bands.
+    """
+
+    def __init__(self, bands: int, sectors: int):
+        self.bands, self.sectors = bands, sectors
+
+    @property
+    def count(self) -> int:
+        return self.bands * self.sectors
+
+    def down(self, root_quat: torch.Tensor) -> torch.Tensor:
+        return -gravity_in_frame(root_quat.double())
+
+    def index(self, root_quat: torch.Tensor) -> torch.Tensor:
+        """Bin [n] (long) of each orientation [n, 4]."""
+        d = self.down(root_quat)
+        band = ((d[:, 2] + 1.0) * 0.5 * self.bands).long().clamp(0, self.bands - 1)
+        azimuth = torch.atan2(d[:, 1], d[:, 0]) + math.pi / self.sectors  # sector 0 centred on +x
+        sector = (torch.remainder(azimuth, 2 * math.pi) / (2 * math.pi) * self.sectors).long()
+        return band * self.sectors + sector.clamp(0, self.sectors - 1)
+
+    def sector_labels(self) -> list[str]:
+        """The side facing the ground in each sector (degrees where there are not 8 sectors)."""
+        if self.sectors == 8:
+            return ["front", "front-left", "left", "back-left", "back", "back-right", "right", "front-right"]
+        return [f"{360 * s / self.sectors:.0f}°" for s in range(self.sectors)]
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "bands": self.bands,
+            "sectors": self.sectors,
+            "vector": "ground direction in the root frame, -R(q)^T e_z",
+            "band": "equal steps of its z component from -1 (feet down) to +1 (head down)",
+            "sector": "equal steps of atan2(y, x), sector 0 centred on +x (front down), counter-clockwise",
+        }
+
+
+def select_uniform(
+    counts: np.ndarray, seen: np.ndarray, total: int, min_share: float
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """How many poses to keep per bin: (keep [K], rare [K] bool, feasible).
+
+    counts: settled poses per bin; seen: drops per bin, including the ones
+    stopped early in an over-full bin (the natural frequencies). Rare bins (seen
+    less often than `min_share` of a uniform share) keep all their poses; the
+    covered bins are filled to one common level ("water filling") so that
+    `total` poses are kept. Infeasible when fewer than `total` poses settled.
+    """
+    k = len(counts)
+    rare = seen < min_share * seen.sum() / k
+    keep = np.where(rare, counts, 0)
+    need = total - int(keep.sum())
+    cov = np.flatnonzero(~rare)
+    if need <= 0 or len(cov) == 0:
+        # hardly possible (rare bins alone hold `total`); take the rare ones in bin order
+        keep = np.minimum(counts, np.maximum(0, total - (np.cumsum(counts) - counts)))
+        return keep, rare, need <= 0
+    if counts[cov].sum() < need:
+        keep[cov] = counts[cov]
+        return keep, rare, False
+    level = _water_level(np.sort(counts[cov]), need)
+    keep[cov] = np.minimum(counts[cov], level)
+    rest = need - int(keep[cov].sum())
+    for b in cov:  # bins still above the level take one more each, in bin order
+        if rest == 0:
+            break
+        if counts[b] > level:
+            keep[b] += 1
+            rest -= 1
+    return keep, rare, True
+
+
+def _water_level(c: np.ndarray, need: int) -> int:
+    """The largest level L with sum(min(c, L)) <= need, for ascending counts c holding at least `need`."""
+    before = 0
+    for i, ci in enumerate(c):
+        filled = before + ci * (len(c) - i)
+        if filled >= need:
+            return (need - before) // (len(c) - i)
+        before += ci
+    return int(c[-1])  # pragma: no cover - excluded by the caller's sum check
+
+
+def uniformity(keep: np.ndarray, rare: np.ndarray) -> float:
+    """Smallest / largest kept count over the covered bins (1 = perfectly uniform)."""
+    cov = keep[~rare]
+    return float(cov.min() / cov.max()) if len(cov) and cov.max() > 0 else 0.0
+
+
+def format_histogram(counts: list[int] | np.ndarray, bins: OrientationBins, rare: list[int] = ()) -> str:
+    """The bins as a text table (bands as rows, head-down band first), rare bins marked *."""
+    grid = np.asarray(counts).reshape(bins.bands, bins.sectors)
+    edges = np.linspace(-1, 1, bins.bands + 1)
+    head = " " * 13 + "".join(f"{s:>12s}" for s in bins.sector_labels())
+    rows = [head]
+    for b in reversed(range(bins.bands)):
+        cells = "".join(f"{grid[b, s]:>11d}{'*' if b * bins.sectors + s in rare else ' '}" for s in range(bins.sectors))
+        rows.append(f"z {edges[b]:+.2f}..{edges[b + 1]:+.2f}" + cells)
+    return "\n".join(rows)
