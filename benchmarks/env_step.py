@@ -22,10 +22,9 @@ import time
 import torch
 
 from fallkit.api import get_robot
+from fallkit.config import EnvConfig, RewardConfig
 from fallkit.env.fall_env import FallEnv
 from fallkit.poses.end_pose_set import random_end_poses
-from fallkit.config import EnvConfig
-from fallkit.config import RewardConfig
 from fallkit.sim import make_sim
 
 

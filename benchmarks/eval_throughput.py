@@ -38,16 +38,15 @@ def main() -> None:
     from tensordict.nn import TensorDictModule
 
     from fallkit.api import get_robot
+    from fallkit.config import FallkitConfig, TrainConfig
     from fallkit.env.fall_env import FallEnv
-    from fallkit.poses.end_pose_set import random_end_poses
-    from fallkit.config import FallkitConfig
     from fallkit.eval.evaluate import eval_run_config
     from fallkit.eval.rollout import POLICY, chunking, draw_trials, evaluate
+    from fallkit.eval.strategies import STRATEGIES
+    from fallkit.poses.end_pose_set import random_end_poses
     from fallkit.rl.models import GaussianPolicyNet
     from fallkit.rl.policy import MeanAction, load_policy
     from fallkit.sim import make_sim
-    from fallkit.eval.strategies import STRATEGIES
-    from fallkit.config import TrainConfig
 
     torch.set_num_threads(args.torch_threads)
     t_setup = time.perf_counter()

@@ -32,10 +32,10 @@ import numpy as np
 import torch
 
 from fallkit.api import get_robot
-from fallkit.poses.generator import EndPoseGenerator, _Candidates, to_dataset
-from fallkit.poses.settle import settle
 from fallkit.config import DatasetConfig
 from fallkit.poses.checker import PoseChecker
+from fallkit.poses.generator import EndPoseGenerator, _Candidates, to_dataset
+from fallkit.poses.settle import settle
 
 
 def physics_probe(spec, seconds: float = 3.0) -> float:

@@ -25,13 +25,12 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from fallkit.app import register_configs
-from fallkit.env.build import make_env
 from fallkit.config import validate
-from fallkit.rl.models import make_actor, make_critic
+from fallkit.env.build import make_env
+from fallkit.rl.models import hold_prior, make_actor, make_critic
 from fallkit.rl.ppo import PPO
-from fallkit.sim import make_sim
-from fallkit.rl.models import hold_prior
 from fallkit.rl.trainer import collect
+from fallkit.sim import make_sim
 
 
 def config_for(args):

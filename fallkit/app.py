@@ -23,7 +23,8 @@ from omegaconf import DictConfig, OmegaConf
 from fallkit import registry
 from fallkit.config import FallkitConfig, defaults, validate
 from fallkit.errors import FallkitError, PluginError
-from fallkit.robots import GROUP as ROBOTS, get_robot
+from fallkit.robots import GROUP as ROBOTS
+from fallkit.robots import get_robot
 
 log = logging.getLogger("fallkit")
 

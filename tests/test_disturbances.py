@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from fallkit import registry
-from fallkit.env.samplers.disturbances import Disturbances
 from fallkit.config import DisturbanceConfig
+from fallkit.env.samplers.disturbances import Disturbances
 
 DT = 0.02
 

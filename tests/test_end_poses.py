@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit.rotations import gravity_in_frame, quat_rotate
 from fallkit.config import DatasetConfig, SettleConfig
 from fallkit.poses.bins import OrientationBins, select_uniform, uniformity
+from fallkit.poses.checker import PoseChecker
 from fallkit.poses.generator import EndPoseGenerator, _Candidates, sample_root_quat
 from fallkit.poses.settle import settle
-from fallkit.poses.checker import PoseChecker
+from fallkit.rotations import gravity_in_frame, quat_rotate
 from fallkit.sim.base import Layout
 
 # A small run that still has to rebalance: 8 coarse bins, so it converges in a few hundred drops.

@@ -3,23 +3,18 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+from fallkit.config import BUILTIN_TERMS, EnvConfig, RewardConfig
 from fallkit.env.fall_env import FallEnv
-
-from fallkit.poses.end_pose_set import random_end_poses
-
-from fallkit.config import EnvConfig
 from fallkit.env.observations import actor_layout, critic_layout
-from fallkit.config import BUILTIN_TERMS, RewardConfig
-from fallkit.rotations import quat_from_euler, quat_mul, quat_rotate
 from fallkit.env.samplers.initial_state import InitialStateSampler
+from fallkit.poses.end_pose_set import random_end_poses
+from fallkit.rotations import quat_from_euler, quat_mul, quat_rotate
 from fallkit.sim import make_sim
 
 N = 6

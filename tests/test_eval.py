@@ -14,12 +14,12 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from fallkit.eval import evaluate as ev
 from fallkit.config import ConfigError, FallkitConfig
 from fallkit.env.fall_env import FallEnv
+from fallkit.eval import evaluate as ev
+from fallkit.eval.strategies import STRATEGIES
 from fallkit.poses.end_pose_set import random_end_poses
 from fallkit.sim import make_sim
-from fallkit.eval.strategies import STRATEGIES
 
 STEPS = 10  # 0.2 s falls: enough for the strategies to diverge, cheap on 2 cores
 SEED = 777

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from fallkit import registry
-from fallkit.rotations import quat_from_euler, quat_mul, quat_rotate
-from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.config import InitialStateConfig
+from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.poses.checker import PoseChecker
+from fallkit.rotations import quat_from_euler, quat_mul, quat_rotate
 
 N = 256
 

@@ -16,8 +16,8 @@ from fallkit.errors import PoseFileError
 from fallkit.poses import load_end_poses
 from fallkit.poses.artist import artist_file, ground_side, read_artist_poses, root_quat_from_pitch_roll
 from fallkit.poses.dataset import FORMAT, PoseDataset, load_dataset, read_meta, save_dataset
-from fallkit.rotations import gravity_in_frame
 from fallkit.poses.end_pose_set import EndPoseSet
+from fallkit.rotations import gravity_in_frame
 
 
 def _dataset(spec, n: int = 200, test: int = 20, seed: int = 0) -> PoseDataset:

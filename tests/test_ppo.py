@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from fallkit.config import PPOConfig
 from fallkit.rl.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, save_checkpoint
 from fallkit.rl.models import RunningNorm
 from fallkit.rl.ppo import adapt_learning_rate, gaussian_kl
-from fallkit.config import PPOConfig
 
 
 def test_adaptive_learning_rate_follows_rsl_rl():

@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from fallkit.rl.checkpoint import load_checkpoint
 from fallkit.poses import load_end_poses
+from fallkit.rl.checkpoint import load_checkpoint
 
 pytest.importorskip("fallkit_go1", reason="install plugins/fallkit-go1 (scripts/setup.sh does)")
 

@@ -12,15 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from fallkit.eval import evaluate as ev
-from fallkit.config import ConfigError, FallkitConfig
+from fallkit.config import ConfigError, FallkitConfig, RenderConfig
 from fallkit.env.fall_env import FallEnv
-from fallkit.poses.end_pose_set import random_end_poses
+from fallkit.eval import evaluate as ev
 from fallkit.eval.render import FallPainter, frame_stride, render_rollout, write_video
-from fallkit.config import RenderConfig
-from fallkit.poses.checker import PoseChecker
-from fallkit.sim import make_sim
 from fallkit.eval.strategies import STRATEGIES
+from fallkit.poses.checker import PoseChecker
+from fallkit.poses.end_pose_set import random_end_poses
+from fallkit.sim import make_sim
 
 STEPS = 6
 

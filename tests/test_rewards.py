@@ -9,9 +9,8 @@ import pytest
 import torch
 
 from fallkit import registry
-from fallkit.config import ConfigError, validate
+from fallkit.config import BUILTIN_TERMS, ConfigError, RewardConfig, validate
 from fallkit.env.rewards import RewardContext, RewardSum
-from fallkit.config import BUILTIN_TERMS, RewardConfig
 from fallkit.env.rewards.impact import impact, root_acc
 from fallkit.env.rewards.regularization import action_acc, action_rate, joint_acc, offset, torques
 from fallkit.env.rewards.tracking import blend, joints, orientation

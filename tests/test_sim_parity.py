@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from fallkit.errors import ConfigError, SimBufferError
 from fallkit.env.samplers.initial_state import InitialStateSampler
+from fallkit.errors import ConfigError, SimBufferError
 from fallkit.sim import make_sim
 
 G = 9.81

@@ -17,8 +17,8 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from fallkit.app import register_configs
-from fallkit.rl.checkpoint import load_checkpoint
 from fallkit.config import validate
+from fallkit.rl.checkpoint import load_checkpoint
 
 TINY = [
     "train=quick",

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
 from fallkit.config.dataset import DatasetConfig, SettleConfig
 from fallkit.config.env import DisturbanceConfig, DisturbanceRange, EnvConfig, InitialStateConfig, ObservationNoise
@@ -20,6 +20,7 @@ from fallkit.config.eval import EvalConfig
 from fallkit.config.render import RenderConfig
 from fallkit.config.reward import BUILTIN_TERMS, RewardConfig
 from fallkit.config.robot import RobotConfig
+from fallkit.config.section import Section
 from fallkit.config.sim import SimConfig
 from fallkit.config.train import PPOConfig, TrainConfig
 from fallkit.errors import ConfigError
@@ -33,10 +34,8 @@ __all__ = [
 Mode = Literal["train", "list", "poses", "eval", "render", "export"]
 
 
-class FallkitConfig(BaseModel):
+class FallkitConfig(Section):
     """The whole validated configuration of one run."""
-
-    model_config = ConfigDict(extra="forbid")
 
     mode: Mode = "train"
     seed: int = 0

@@ -6,13 +6,13 @@ from (`env.poses`, `eval.poses`).
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from fallkit.config.section import Section
 
 
-class SettleConfig(BaseModel):
+class SettleConfig(Section):
     """The drop: height, frozen gains, and when a robot counts as at rest."""
-
-    model_config = ConfigDict(extra="forbid")
 
     drop_height: float = Field(0.04, ge=0, description="[m] gap between the lowest geom and the floor at release")
     gain_scale: float = Field(10.0, gt=0, description="kp, kd × this while dropping (the 'freeze' strategy)")
@@ -23,10 +23,8 @@ class SettleConfig(BaseModel):
     max_time: float = Field(3.0, gt=0, description="[s] drops not at rest by then are discarded (counted)")
 
 
-class DatasetConfig(BaseModel):
+class DatasetConfig(Section):
     """`mode=poses`: the end-pose dataset of the chosen robot (paper Sec. IV-C, V-B)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     out: str | None = Field(None, description="dataset file; default <run dir>/<robot>_poses.npz")
     train: int = Field(24000, ge=1, description="training poses (paper: 24k)")

@@ -5,17 +5,16 @@ Kept apart from `fallkit.env` so that validating a config does not import TorchR
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from fallkit import registry
+from fallkit.config.section import Section
 
 _SAMPLER_ROLES = ("initial_state", "disturbances")
 
 
-class ObservationNoise(BaseModel):
+class ObservationNoise(Section):
     """Std of the Gaussian noise on the actor's measured inputs (legged_gym's levels)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     scale: float = Field(1.0, ge=0, description="multiplies every std below; 0 switches noise off")
     root_quat: float = Field(0.05, ge=0, description="per quaternion component")
@@ -25,10 +24,8 @@ class ObservationNoise(BaseModel):
     joint_vel: float = Field(1.5, ge=0, description="[rad/s]")
 
 
-class InitialStateConfig(BaseModel):
+class InitialStateConfig(Section):
     """Ranges of paper Table II (half-widths of uniform distributions)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     roll_pitch_deg: float = Field(30.0, ge=0, le=180)
     random_yaw: bool = True
@@ -41,10 +38,8 @@ class InitialStateConfig(BaseModel):
     clearance: float = Field(0.005, ge=0, description="[m] gap between the lowest geom and the floor")
 
 
-class DisturbanceRange(BaseModel):
+class DisturbanceRange(Section):
     """Magnitudes and durations for the bodies of one role."""
-
-    model_config = ConfigDict(extra="forbid")
 
     force: float = Field(5.0, ge=0, description="[N] max |force| per axis")
     torque: float = Field(0.25, ge=0, description="[N·m] max |torque| per axis")
@@ -65,19 +60,15 @@ def _table_iv() -> dict[str, DisturbanceRange]:
     return {"hips": short, "feet": short, "elbows": short, "pelvis": long, "head": long}
 
 
-class DisturbanceConfig(BaseModel):
+class DisturbanceConfig(Section):
     """Paper Table IV by role."""
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = True
     roles: dict[str, DisturbanceRange] = Field(default_factory=_table_iv)
 
 
-class EnvConfig(BaseModel):
+class EnvConfig(Section):
     """Episode, action and observation settings of FallEnv."""
-
-    model_config = ConfigDict(extra="forbid")
 
     episode_length: float = Field(3.0, gt=0, description="T [s]: every episode is truncated after T")
     action_scale: float = Field(0.5, gt=0, description="[rad] per action unit: setpoint = nominal + action_scale·a")

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from fallkit.config.section import Section
 
 
-class EvalConfig(BaseModel):
+class EvalConfig(Section):
     """Evaluation of a policy (top-level `checkpoint`) and the standard fall strategies."""
-
-    model_config = ConfigDict(extra="forbid")
 
     trials: int = Field(256, gt=0, description="falls per strategy (the paper: 32768)")
     seconds: float | None = Field(None, gt=0, description="length of each fall [s]; null = the env's episode length")

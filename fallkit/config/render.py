@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+
+from fallkit.config.section import Section
 
 
-class RenderConfig(BaseModel):
+class RenderConfig(Section):
     """Video options of `mode=render` (falls come from `eval`: seed, poses, seconds)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     format: Literal["mp4", "gif", "both"] = "mp4"
     falls: int = Field(1, gt=0, description="falls rendered one after another, each from a new initial state")

@@ -2,18 +2,18 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+
+from fallkit.config.section import Section
 
 
-class RobotConfig(BaseModel):
+class RobotConfig(Section):
     """Which registered robot, and sensitivity weights overriding its defaults.
 
     Hydra fills `robot=<name>` from the registered robots, with the robot's own
     weights, so `robot.sensitivity.head=8` changes one component (paper Sec. V-E).
     `fallkit.robots.robot_spec(config.robot)` turns this into the RobotSpec.
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     name: str
     sensitivity: dict[str, float] = Field(default_factory=dict, description="component -> sensitivity weight w_c")

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from fallkit.config.section import Section
 
 
-class SimConfig(BaseModel):
+class SimConfig(Section):
     """Simulator backend and size."""
-
-    model_config = ConfigDict(extra="forbid")
 
     backend: Literal["mujoco", "warp"] = "mujoco"
     num_envs: int = Field(256, gt=0, description="parallel worlds")

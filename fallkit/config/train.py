@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from fallkit.config.section import Section
 
 
-class PPOConfig(BaseModel):
+class PPOConfig(Section):
     """Table III defaults; `learning_rate` is the starting point of the adaptive rule."""
-
-    model_config = ConfigDict(extra="forbid")
 
     num_minibatches: int = Field(4, gt=0)
     epochs: int = Field(5, gt=0)
@@ -24,9 +24,7 @@ class PPOConfig(BaseModel):
     value_coef: float = Field(1.0, ge=0)
 
 
-class TrainConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class TrainConfig(Section):
     iterations: int = Field(75_000, gt=0)
     num_steps: int = Field(24, gt=0, description="policy steps per env per iteration")
     max_minutes: float | None = Field(None, gt=0, description="wall-clock budget; the run checkpoints and stops")

@@ -20,9 +20,9 @@ import numpy as np  # noqa: E402
 
 from fallkit.errors import FallkitError  # noqa: E402
 from fallkit.eval.render import FallPainter, label  # noqa: E402
-from fallkit.poses.checker import PoseChecker  # noqa: E402
 from fallkit.poses.artist import artist_file, read_artist_poses, settle_artist_poses  # noqa: E402
 from fallkit.poses.bins import OrientationBins  # noqa: E402
+from fallkit.poses.checker import PoseChecker  # noqa: E402
 from fallkit.robots import get_robot  # noqa: E402
 from fallkit.robots.spec import RobotSpec  # noqa: E402
 

@@ -1,7 +1,7 @@
 """`mode=render`: videos of falls, the policy and the standard strategies side by side.
 
 Each fall runs once per strategy from the same initial state toward the same
-end pose (the paired rollout of `fallkit.eval.evaluate`), recording the simulator
+end pose (the paired rollout of `fallkit.eval.rollout`), recording the simulator
 state; the recording is then drawn with MuJoCo's offscreen renderer, one panel
 per strategy, with
 - the target end pose as a translucent green ghost where the robot comes to
@@ -25,6 +25,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import torch
+
 from fallkit.config import FallkitConfig, RenderConfig
 from fallkit.errors import ConfigError, RenderError
 from fallkit.eval.evaluate import make_eval_env, prepare

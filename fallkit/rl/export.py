@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from fallkit.config import FallkitConfig
-from fallkit.errors import ConfigError
 from fallkit.env.observations import describe_actor_observation
+from fallkit.errors import ConfigError
 from fallkit.rl.policy import load_policy
 
 

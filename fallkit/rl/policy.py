@@ -17,8 +17,8 @@ from torch import nn
 from fallkit.config import FallkitConfig, validate
 from fallkit.errors import CheckpointError
 from fallkit.rl.checkpoint import load_checkpoint
-from fallkit.robots import robot_spec
 from fallkit.rl.models import GaussianPolicyNet, hold_prior
+from fallkit.robots import robot_spec
 from fallkit.robots.spec import RobotSpec
 
 

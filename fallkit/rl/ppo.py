@@ -27,8 +27,8 @@ from tensordict import TensorDict
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from fallkit.rl.models import policy_net
 from fallkit.config import PPOConfig
+from fallkit.rl.models import policy_net
 
 
 def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:

@@ -24,8 +24,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from fallkit.errors import RobotSpecError
 
 
-
-
 class JointSpec(BaseModel):
     """One actuated joint: PD gains at the physics rate and the torque limit."""
 

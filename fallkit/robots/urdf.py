@@ -47,7 +47,7 @@ import mujoco
 from fallkit.errors import URDFError
 from fallkit.robots.spec import ComponentSpec, JointSpec, RobotSpec, make_robot_spec
 from fallkit.robots.urdf_mjcf import convert
-from fallkit.robots.urdf_tree import URDFWarning, UrdfTree, read_urdf
+from fallkit.robots.urdf_tree import UrdfTree, URDFWarning, read_urdf
 
 __all__ = ["ACTUATED_TYPES", "URDFWarning", "robot_from_urdf", "urdf_to_mjcf"]
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import torch
+
 from fallkit import registry
 from fallkit.config import RewardConfig
 from fallkit.sim.base import SimState

@@ -13,14 +13,9 @@ All worlds and bodies are scheduled at once with torch ops: no Python per world.
 from __future__ import annotations
 
 import torch
+
 from fallkit.config import DisturbanceConfig
 from fallkit.robots.spec import RobotSpec
-
-
-
-
-
-
 
 
 class Disturbances:

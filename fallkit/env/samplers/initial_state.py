@@ -12,12 +12,11 @@ from __future__ import annotations
 import math
 
 import torch
+
 from fallkit.config import InitialStateConfig
 from fallkit.poses.checker import PoseChecker
 from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import quat_from_euler, quat_mul
-
-
 
 
 class InitialStateSampler:
