@@ -34,14 +34,8 @@ from pathlib import Path
 
 import yaml
 
-METRICS = {
-    "max_impact_ratio": "max_impact_force",
-    "mroe_ratio": "mroe",
-    "mje_ratio": "mje",
-    "fall_mean_impact_ratio": "fall_mean_impact_force",
-}
-STRATEGIES = ("zero_torque", "damping", "freeze")
-REFERENCE = "seek"
+from fallkit.eval.report import RATIOS, ratios
+from fallkit.eval.rollout import SEEK
 
 
 def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
@@ -69,20 +63,17 @@ def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
     }
 
 
-def ratios(summary: dict) -> dict:
+def all_ratios(summary: dict) -> dict:
     """Policy (and seek) over the best standard strategy, per metric, from one eval.json."""
-    out = {}
-    for key, metric in METRICS.items():
-        best = min(summary[s][metric]["mean"] for s in STRATEGIES)
-        out[key] = summary["policy"][metric]["mean"] / best
-        if REFERENCE in summary:
-            out[f"seek_{key}"] = summary[REFERENCE][metric]["mean"] / best
+    out = ratios(summary)
+    if SEEK in summary:
+        out.update({f"seek_{k}": v for k, v in ratios(summary, SEEK).items()})
     return out
 
 
 def absolute(summary: dict) -> dict:
-    names = ["policy", *STRATEGIES, *([REFERENCE] if REFERENCE in summary else [])]
-    return {n: {m: round(summary[n][m]["mean"], 4) for m in METRICS.values()} for n in names}
+    """Each strategy's mean of each metric."""
+    return {n: {m: round(s[m]["mean"], 4) for m in RATIOS.values()} for n, s in summary.items()}
 
 
 def main() -> None:
@@ -98,7 +89,7 @@ def main() -> None:
 
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
     runs = [train_and_evaluate(args, s, Path(args.out) / stamp / f"seed{s}") for s in range(args.seeds)]
-    per_seed = [{**ratios(r["eval"]), "seed": r["seed"], "iterations": r["iterations"]} for r in runs]
+    per_seed = [{**all_ratios(r["eval"]), "seed": r["seed"], "iterations": r["iterations"]} for r in runs]
     result = {k: statistics.median(r[k] for r in per_seed) for k in per_seed[0] if k not in ("seed", "iterations")}
     result.update(
         backend=args.backend,

@@ -27,9 +27,10 @@ from tensordict import TensorDict
 from fallkit.app import register_configs
 from fallkit.config import validate
 from fallkit.env.build import make_env
-from fallkit.rl.models import hold_prior, make_actor, make_critic
+from fallkit.rl.models import joint_prior, make_actor, make_critic
 from fallkit.rl.ppo import PPO
 from fallkit.rl.trainer import collect
+from fallkit.robots import robot_spec
 from fallkit.sim import make_sim
 
 
@@ -70,7 +71,7 @@ def main() -> None:
     obs_dim = env.observation_spec["policy"].shape[-1]
     critic_dim = env.observation_spec["critic"].shape[-1]
     act_dim = env.action_spec.shape[-1]
-    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, hold_prior(config, spec))
+    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, joint_prior(config, spec))
     critic = make_critic(critic_dim, tc.critic_hidden)
     ppo = PPO(actor, critic, tc.ppo)
     td = env.reset()

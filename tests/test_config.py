@@ -14,6 +14,8 @@ from omegaconf import OmegaConf
 import fallkit
 from fallkit.app import register_configs
 from fallkit.config import (
+    ConfigError,
+    PPOConfig,
     DatasetConfig,
     EnvConfig,
     EvalConfig,
@@ -67,8 +69,8 @@ def test_presets_only_write_values_that_differ_from_the_defaults(option):
     data.pop("defaults", None)
     tree = data if "@package _global_" in text else {group: data}
     base = leaves(defaults())
-    if option == "train/quick.yaml":  # built on train/default
-        base.update(leaves(yaml.safe_load((CONF / "train" / "default.yaml").read_text())))
+    for parent in (yaml.safe_load(text) or {}).get("defaults", []):  # built on another preset (train/default)
+        base.update(leaves(yaml.safe_load((CONF / group / f"{parent}.yaml").read_text())))
     repeated = {k: v for k, v in leaves(tree).items() if k in base and base[k] == v}
     assert not repeated, f"{option} repeats defaults: {repeated}"
     unknown = sorted(set(leaves(tree)) - set(base))
@@ -80,3 +82,12 @@ def test_presets_compose_and_change_what_they_say():
     assert quick.sim.num_envs == 256 and quick.train.max_minutes == 15 and quick.train.actor_hidden == [256, 256, 256]
     warp = composed("sim=warp")
     assert warp.sim.backend == "warp" and warp.sim.device == "auto" and warp.sim.threads == SimConfig().threads
+
+
+def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
+    paper = composed("train=paper")
+    assert paper.train.prior == "none" and not paper.env.observe_blend and paper.train.init_noise_std == 1.0
+    assert paper.sim.num_envs == 4096 and paper.train.actor_hidden == [512, 512, 512] and paper.train.ppo == PPOConfig()
+    with pytest.raises(ConfigError, match="train.prior=seek blends by u"):
+        composed("env.observe_blend=false")
+    assert composed("env.observe_blend=false", "train.prior=hold").train.prior == "hold"

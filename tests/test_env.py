@@ -39,7 +39,7 @@ def env(biped, poses):
 def test_check_env_specs_and_layout(env, biped):
     check_env_specs(env, seed=0)
     assert env.batch_size == torch.Size([N])
-    assert env.observation_spec["policy"].shape[-1] == sum(s for _, s in actor_layout(biped)) == 14 + 5 * 20
+    assert env.observation_spec["policy"].shape[-1] == sum(s for _, s in actor_layout(biped)) == 15 + 5 * 20
     assert env.observation_spec["critic"].shape[-1] == sum(s for _, s in critic_layout(biped))
     assert env.action_spec.shape == (N, 20)
     assert env.observation_spec["contact_force"].shape == (N, len(biped.components))

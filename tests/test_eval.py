@@ -17,6 +17,7 @@ from torch import nn
 from fallkit.config import ConfigError, FallkitConfig
 from fallkit.env.fall_env import FallEnv
 from fallkit.eval import evaluate as ev
+from fallkit.eval.rollout import gain_scales
 from fallkit.eval.strategies import STRATEGIES
 from fallkit.poses.end_pose_set import random_end_poses
 from fallkit.sim import make_sim
@@ -184,10 +185,48 @@ def test_cli_evaluates_a_trained_policy_against_the_strategies(tmp_path):
     r = _cli(f"checkpoint={tmp_path / 'train'}", "mode=eval", "eval.trials=3", "sim.num_envs=8", "hydra.run.dir=eval", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     data = json.loads((tmp_path / "eval" / "eval.json").read_text())
-    assert list(data) == ["policy", *STRATEGIES]
+    assert list(data) == ["policy", *STRATEGIES, "seek"]
     assert all(data[s]["trials"] == 3 and data[s]["max_impact_force"]["p95"] > 0 for s in data)
     assert "policy" in (tmp_path / "eval" / "eval.md").read_text()
     # the training run's seed is refused: its initial states were seen in training
     same_seed = trained.model_copy(update={"checkpoint": str(tmp_path / "train"), "eval": trained.eval.model_copy(update={"seed": trained.seed})})
     with pytest.raises(ConfigError, match="eval.seed"):
         ev.prepare(same_seed)
+
+
+def test_seek_reference_blends_from_the_start_joints_to_the_target(biped):
+    """'seek': nominal gains, setpoints lerp(start joints, target joints, u(t)) — open loop, no policy."""
+    k = 2
+    names = ["damping", ev.SEEK]
+    env = make_env(biped, len(names) * k)
+    trials = ev.draw_trials(env, k, SEED)
+    out = ev.rollout(env, trials, names, record_states=True)
+    seek = slice(k, 2 * k)
+    start = out.qpos[0, seek][:, env.sim.layout.joint_qpos].float()
+    target = env.end_poses.joint_pos[trials.pose_ids].float()
+    t = torch.arange(1, STEPS + 1) * env.dt - env.dt  # each step's action is taken at the step's start
+    u = (t / env.reward_cfg.blend_time).clamp(0, 1)
+    u = u * u * (3 - 2 * u)
+    want = start[None] + u[:, None, None] * (target - start)[None]
+    low, high = torch.as_tensor(biped.joint_limits, dtype=torch.float32).unbind(-1)
+    torch.testing.assert_close(out.setpoint[1:, seek], want.clamp(low, high), atol=1e-5, rtol=0)
+    assert gain_scales(names) == [STRATEGIES["damping"], 1.0]
+    assert ev.EvalSetup(None, None, None, "", "", seek_reference=True).compared == [*STRATEGIES, ev.SEEK]
+
+
+def test_ratios_are_over_the_best_standard_strategy():
+    from fallkit.eval.report import ratio_line, ratios
+
+    def row(impact, mje):
+        stat = lambda v: {"mean": v}  # noqa: E731
+        return {"max_impact_force": stat(impact), "fall_mean_impact_force": stat(impact / 10), "mroe": stat(1.0),
+                "mje": stat(mje)}  # fmt: skip
+
+    summary = {"policy": row(900, 0.1), "zero_torque": row(1000, 0.8), "damping": row(1200, 0.5), "freeze": row(2000, 0.9)}
+    r = ratios(summary)
+    assert r["max_impact_ratio"] == pytest.approx(0.9) and r["mje_ratio"] == pytest.approx(0.2)
+    assert r["mroe_ratio"] == pytest.approx(1.0) and r["fall_mean_impact_ratio"] == pytest.approx(0.9)
+    assert ratio_line(summary) == (
+        "policy / best standard strategy: max impact 0.90x, fall-phase mean impact 0.90x, MROE 1.00x, MJE 0.20x "
+        "(lower is better)"
+    )

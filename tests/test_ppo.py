@@ -65,3 +65,22 @@ def test_missing_checkpoint_and_foreign_file(tmp_path):
     torch.save({"some": "dict"}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="is not a fallkit checkpoint"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+def test_joint_prior_holds_then_seeks_the_target_joints(biped):
+    from fallkit.env.observations import actor_slices
+    from fallkit.rl.models import JointPrior
+
+    cols = actor_slices(biped)
+    j, scale = len(biped.joints), 0.5
+    nominal = torch.as_tensor(biped.nominal_q()).float()
+    obs = torch.zeros(3, cols["blend"].stop)
+    q, goal = torch.randn(3, j) * 0.3, torch.randn(3, j) * 0.3
+    obs[:, cols["joint_pos"]], obs[:, cols["goal_joint_pos"]] = q, goal
+    obs[:, cols["blend"]] = torch.tensor([[0.0], [0.5], [1.0]])
+    hold = JointPrior(biped, scale, seek=False)(obs)
+    seek = JointPrior(biped, scale, seek=True)(obs)
+    torch.testing.assert_close(hold, (q - nominal) / scale)
+    torch.testing.assert_close(seek[0], hold[0])  # u = 0: the hold
+    torch.testing.assert_close(seek[1], ((q[1] + goal[1]) / 2 - nominal) / scale)
+    torch.testing.assert_close(seek[2], (goal[2] - nominal) / scale)  # u = 1: the target joints

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 
 from fallkit.config.dataset import DatasetConfig, SettleConfig
 from fallkit.config.env import DisturbanceConfig, DisturbanceRange, EnvConfig, InitialStateConfig, ObservationNoise
@@ -50,6 +50,15 @@ class FallkitConfig(Section):
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)
     train: TrainConfig = Field(default_factory=TrainConfig)
 
+    @model_validator(mode="after")
+    def _seek_needs_the_clock(self) -> "FallkitConfig":
+        if self.train.prior == "seek" and not self.env.observe_blend:
+            raise ValueError(
+                "train.prior=seek blends by u(t), which the actor then must observe: set env.observe_blend=true "
+                "or train.prior=hold|none"
+            )
+        return self
+
 
 def validate(raw: dict[str, Any]) -> FallkitConfig:
     """Validate a resolved config dict; raise ConfigError naming every bad key."""
@@ -64,7 +73,7 @@ def _describe(error: dict[str, Any]) -> str:
     got = error.get("input")
     shown = "" if isinstance(got, dict) else f" (got {got!r})"
     msg = error["msg"].removeprefix("Value error, ")  # our validators' own words need no prefix
-    return f"{key}: {msg}{shown}"
+    return f"{key}: {msg}{shown}" if key else msg  # a check across sections names its keys itself
 
 
 def defaults() -> dict[str, Any]:

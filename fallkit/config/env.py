@@ -73,6 +73,11 @@ class EnvConfig(Section):
     episode_length: float = Field(3.0, gt=0, description="T [s]: every episode is truncated after T")
     action_scale: float = Field(0.5, gt=0, description="[rad] per action unit: setpoint = nominal + action_scale·a")
     clip_setpoints: bool = Field(True, description="clip setpoints to the joint limits")
+    observe_blend: bool = Field(
+        True,
+        description="the actor observes u(t), the tracking blend of the time since the fall began (a clock the "
+        "robot keeps); false feeds it a zero, as the paper's actor, which does not observe time",
+    )
     poses: str = Field(
         "default", description="end-pose source: 'default' (the robot's dataset), a .npz dataset or a .yaml pose file"
     )

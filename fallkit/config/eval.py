@@ -17,3 +17,8 @@ class EvalConfig(Section):
         None, description="end poses: null = the env's (training run's) source; 'default', a .npz dataset or a .yaml pose file"
     )
     split: str = Field("test", description="dataset split of the end poses (test = unseen in training)")
+    seek_reference: bool = Field(
+        True,
+        description="also fall 'seek': setpoints blended open-loop from the starting joints to the target joints "
+        "by u(t), nominal gains — a reference for what learning adds, not one of the paper's strategies",
+    )

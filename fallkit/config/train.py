@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from fallkit.config.section import Section
@@ -31,8 +33,10 @@ class TrainConfig(Section):
     actor_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
     critic_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
     init_noise_std: float = Field(1.0, gt=0, description="initial policy std, in action units")
-    hold_prior: bool = Field(
-        True, description="policy mean = MLP + the action holding the measured joint angles (fallkit.rl.models.HoldPrior)"
+    prior: Literal["none", "hold", "seek"] = Field(
+        "seek",
+        description="policy mean = MLP + a prior setpoint (fallkit.rl.models.JointPrior): none (the paper), hold "
+        "the measured joints, or seek: hold blended into the target joints by u(t) (needs env.observe_blend)",
     )
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")

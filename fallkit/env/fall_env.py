@@ -121,6 +121,10 @@ class FallEnv(EnvBase):
         """The current world-frame target θ̂_t [N, 4]: the end pose's tilt turned to the robot's heading."""
         return path_frame(self.sim.state.root_quat).turn(self.goal_root_quat)
 
+    def tracking_blend(self) -> torch.Tensor:
+        """u(t) [N] of every world at its current step: 0 when the fall begins, 1 after T_blend."""
+        return blend(self.step_count * self.dt, self.reward_cfg.blend_time)
+
     @property
     def reward_terms_mean(self) -> dict[str, torch.Tensor]:
         """Per-term mean over worlds of the last step's contribution (weight · term · dt), 0-dim tensors."""
@@ -317,12 +321,17 @@ class FallEnv(EnvBase):
 
     # ---- internals ----------------------------------------------------------------
 
+    def _observed_blend(self) -> torch.Tensor:
+        """u(t) for the actor (zeros where it does not observe time)."""
+        u = self.tracking_blend()
+        return u if self.env_cfg.observe_blend else torch.zeros_like(u)
+
     def _observation(self, truncated: torch.Tensor, frame=None) -> TensorDictBase:
         st = self.sim.state
         frame = frame if frame is not None else path_frame(st.root_quat)
         actor = actor_observation(
             frame, st.root_quat, st.root_lin_vel, st.root_ang_vel, st.joint_pos, st.joint_vel,
-            self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos,
+            self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos, self._observed_blend(),
         )  # fmt: skip
         critic = critic_observation(
             actor, frame, self.step_count * (1.0 / self.max_steps), self._friction, st.root_pos[:, 2],

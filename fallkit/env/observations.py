@@ -55,6 +55,7 @@ ACTOR_OBSERVATION: tuple[ObservationPart, ...] = (
     ObservationPart("last_last_action", 1, per_joint=True, doc="a_{t-2}, policy action units"),
     ObservationPart("goal_root_quat", 4, doc="end-pose root orientation in the path frame (see FallEnv)"),
     ObservationPart("goal_joint_pos", 1, per_joint=True, doc="end-pose joint angles [rad]"),
+    ObservationPart("blend", 1, doc="u(t), the tracking blend of the time since the fall began (0 -> 1 over T_blend)"),
 )  # fmt: skip
 
 
@@ -163,8 +164,12 @@ def actor_observation(
     last_last_action: torch.Tensor,
     goal_root_quat: torch.Tensor,
     goal_joint_pos: torch.Tensor,
+    blend: torch.Tensor,
 ) -> torch.Tensor:
-    """Noiseless actor observation [N, Da]; root_lin_vel in world, root_ang_vel in root frame (as SimState)."""
+    """Noiseless actor observation [N, Da]; root_lin_vel in world, root_ang_vel in root frame (as SimState).
+
+    blend [N]: u(t), or zeros where the actor does not observe time (env.observe_blend=false).
+    """
     parts = {
         "root_quat": frame.tilt,
         "root_lin_vel": quat_rotate_inverse(root_quat, root_lin_vel),
@@ -175,6 +180,7 @@ def actor_observation(
         "last_last_action": last_last_action,
         "goal_root_quat": goal_root_quat,
         "goal_joint_pos": goal_joint_pos,
+        "blend": blend.view(-1, 1),
     }
     return torch.cat([parts[p.name] for p in ACTOR_OBSERVATION], dim=-1)
 

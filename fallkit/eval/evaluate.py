@@ -26,15 +26,15 @@ from fallkit.config import FallkitConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.errors import ConfigError
-from fallkit.eval.report import text_table, write_results
-from fallkit.eval.rollout import POLICY, Rollout, Trials, chunking, draw_trials, evaluate, rollout
+from fallkit.eval.report import ratio_line, text_table, write_results
+from fallkit.eval.rollout import POLICY, SEEK, Rollout, Trials, chunking, draw_trials, evaluate, rollout
 from fallkit.eval.strategies import STRATEGIES
 from fallkit.rl.policy import load_policy
 from fallkit.robots import robot_spec
 
 # mode=eval's whole surface, the paired rollouts and the reports included
 __all__ = [
-    "POLICY", "EvalSetup", "Rollout", "Trials", "chunking", "draw_trials", "eval_run_config", "evaluate",
+    "POLICY", "SEEK", "EvalSetup", "Rollout", "Trials", "chunking", "draw_trials", "eval_run_config", "evaluate",
     "evaluate_checkpoint", "make_eval_env", "prepare", "rollout", "run_eval", "text_table", "write_results",
 ]  # fmt: skip
 
@@ -51,10 +51,17 @@ class EvalSetup:
     checkpoint: str | None
     poses: str  # end-pose source (dataset, pose file or "default")
     split: str
+    seek_reference: bool = False
 
     @property
     def strategies(self) -> list[str]:
+        """The policy (if any) and the paper's standard strategies."""
         return ([POLICY] if self.policy is not None else []) + list(STRATEGIES)
+
+    @property
+    def compared(self) -> list[str]:
+        """What mode=eval runs: the strategies, then the seek reference if asked for."""
+        return self.strategies + ([SEEK] if self.seek_reference else [])
 
 
 def prepare(config: FallkitConfig) -> EvalSetup:
@@ -79,7 +86,7 @@ def prepare(config: FallkitConfig) -> EvalSetup:
             )
         run_config = trained.model_copy(update={"sim": config.sim})
     poses = ev.poses if ev.poses is not None else run_config.env.poses
-    return EvalSetup(run_config, policy, config.checkpoint, poses, ev.split)
+    return EvalSetup(run_config, policy, config.checkpoint, poses, ev.split, ev.seek_reference)
 
 
 def eval_run_config(config: FallkitConfig, seconds: float | None) -> FallkitConfig:
@@ -121,7 +128,7 @@ def run_eval(config: FallkitConfig, run_dir: Path) -> dict:
     ev = config.eval
     torch.set_num_threads(1)  # the physics threads are MuJoCo's (2 torch threads beside them measured 1.5-1.8x slower)
     setup = prepare(config)
-    strategies = setup.strategies
+    strategies = setup.compared
     k, chunks = chunking(ev.trials, len(strategies), config.sim.num_envs)
     env = make_eval_env(setup, len(strategies) * k, ev.seconds, ev.seed)
     trials = draw_trials(env, ev.trials, ev.seed)
@@ -143,6 +150,8 @@ def run_eval(config: FallkitConfig, run_dir: Path) -> dict:
     summary = write_results(results, env.spec.component_names, info, Path(run_dir))
     print()
     print(text_table(summary))
+    if POLICY in summary:
+        print(ratio_line(summary))
     print(f"\n{ev.trials} falls × {len(strategies)} strategies in {info['elapsed']:.1f} s; results in {run_dir}/eval.md")
     return summary
 

@@ -12,7 +12,8 @@ import numpy as np
 
 from fallkit.eval import plots
 from fallkit.eval.metrics import TrialMetrics, summarize_trials
-from fallkit.eval.rollout import gain_scales
+from fallkit.eval.rollout import POLICY, SEEK, gain_scales
+from fallkit.eval.strategies import STRATEGIES
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,41 @@ def write_results(results: dict[str, TrialMetrics], components: list[str], info:
     if unstable:
         log.warning("falls restarted by the simulator (unstable), per strategy: %s", unstable)
     return summary
+
+
+# ---- against the best standard strategy --------------------------------------------------
+
+# ratio name -> metric: the policy's mean over the best standard strategy's mean (lower is better)
+RATIOS = {
+    "max_impact_ratio": "max_impact_force",
+    "fall_mean_impact_ratio": "fall_mean_impact_force",
+    "mroe_ratio": "mroe",
+    "mje_ratio": "mje",
+}
+
+
+def ratios(summary: dict, name: str = POLICY) -> dict[str, float]:
+    """`name`'s mean of each metric over the best (lowest) of the three standard strategies' means."""
+    out = {}
+    for key, metric in RATIOS.items():
+        best = min(summary[s][metric]["mean"] for s in STRATEGIES)
+        out[key] = summary[name][metric]["mean"] / best if best > 0 else float("nan")  # nan: nothing to compare
+    return out
+
+
+def ratio_line(summary: dict, name: str = POLICY) -> str:
+    """One line a person reads: e.g. "policy / best strategy: max impact 0.91x, ..."."""
+    r = ratios(summary, name)
+    cells = ", ".join(f"{label} {r[key]:.2f}x" for key, label in _RATIO_LABELS.items())
+    return f"{name} / best standard strategy: {cells} (lower is better)"
+
+
+_RATIO_LABELS = {
+    "max_impact_ratio": "max impact",
+    "fall_mean_impact_ratio": "fall-phase mean impact",
+    "mroe_ratio": "MROE",
+    "mje_ratio": "MJE",
+}
 
 
 # ---- tables ------------------------------------------------------------------------------
@@ -87,7 +123,13 @@ def markdown_report(summary: dict, info: dict, figures: list[str]) -> str:
     ]
     for n in names:
         s = summary[n]
-        out.append(f"| {n} | " + " | ".join(_cells(s, "{} ± {}<br>{} / {}")) + f" | {s['unstable_trials']} |")
+        out.append(f"| {_label(n)} | " + " | ".join(_cells(s, "{} ± {}<br>{} / {}")) + f" | {s['unstable_trials']} |")
+    out += [""] + [f"- {ratio_line(summary, n)}" for n in (POLICY, SEEK) if n in summary]
+    out += [
+        "- seek (reference): no learning; setpoints move open-loop from the joints at the fall's start to",
+        "  the target joints by the tracking blend u(t), nominal gains. Not one of the paper's strategies:",
+        "  it shows what reaching the end pose costs and buys without learning.",
+    ] if SEEK in summary else []
     out += [
         "",
         "- max impact: the largest contact force on any component during the fall (every physics substep).",
@@ -105,9 +147,13 @@ def markdown_report(summary: dict, info: dict, figures: list[str]) -> str:
     for n in names:
         pc = summary[n]["per_component"]
         out.append(
-            f"| {n} | "
+            f"| {_label(n)} | "
             + " | ".join(f"{pc[c]['max_impact_force']['median']:.0f} / {pc[c]['max_impact_force']['p95']:.0f}" for c in comps)
             + " |"
         )
     out += ["", "## Plots", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(out)
+
+
+def _label(name: str) -> str:
+    return "seek (reference)" if name == SEEK else name

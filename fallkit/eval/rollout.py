@@ -4,8 +4,11 @@ One FallEnv runs all strategies at once: its worlds are split into one block per
 strategy, each block holding the same trials, so policy and strategies share
 one code path (`env.reset_to`, `env.step`). The strategies are gain scales of
 the PD controllers (`fallkit.eval.strategies`) holding the setpoint the fall
-began with; the policy block keeps the nominal gains and acts. Trials beyond
-one env's worlds run in chunks (`evaluate`).
+began with; the policy block keeps the nominal gains and acts. The reference
+"seek" (not one of the paper's strategies) keeps the nominal gains and moves its
+setpoints open-loop from the joints at the fall's start to the target joints by
+u(t): what the end pose alone buys, without learning. Trials beyond one env's
+worlds run in chunks (`evaluate`).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from fallkit.eval.strategies import STRATEGIES
 from fallkit.sim.base import SimState
 
 POLICY = "policy"
+SEEK = "seek"  # the open-loop reference: setpoints blended to the target joints by u(t)
 
 
 # ---- trials ------------------------------------------------------------------------------
@@ -87,7 +91,7 @@ class Rollout:
 
 def gain_scales(strategies: Sequence[str]) -> list[float]:
     """PD gain scale of each strategy (the policy keeps the nominal gains)."""
-    return [1.0 if s == POLICY else STRATEGIES[s] for s in strategies]
+    return [STRATEGIES.get(s, 1.0) for s in strategies]
 
 
 @torch.no_grad()
@@ -108,14 +112,19 @@ def rollout(
     # "holding the most recent setpoint": the joint angles when the fall begins
     hold = env.action_for_setpoint(env.sim.state.joint_pos.clone())
     rows = _block(strategies.index(POLICY), k) if POLICY in strategies else None
+    seek = _block(strategies.index(SEEK), k) if SEEK in strategies else None
     if rows is not None:
         policy.to(env.device)  # checkpoints load on the CPU; the env may live on a GPU (sim=warp)
     rec = _Recorder(env, steps, record_states)
     rec.remember(env.sim.state, env.sim.state.joint_pos)
+    start_q = env.sim.state.joint_pos.clone()
     for t in range(steps):
         action = hold.clone()
         if rows is not None:
             action[rows] = policy(td[rows].select("policy"))["action"]
+        if seek is not None:
+            u = env.tracking_blend()[seek, None]
+            action[seek] = env.action_for_setpoint(torch.lerp(start_q[seek], env.goal_joint_pos[seek], u))
         td = env.step(td.set("action", action))["next"]
         rec.record(t, env.sim.state, env.setpoint(action))
         if progress is not None:

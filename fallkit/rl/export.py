@@ -55,6 +55,12 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         "pd_gains": {j.name: {"kp": j.kp, "kd": j.kd, "torque_limit": j.torque_limit} for j in spec.joints},
         "observation_size": obs_dim,
         "observation_layout": describe_actor_observation(spec),
+        "tracking_blend": {
+            "observed": tcfg.env.observe_blend,
+            "blend_time": tcfg.reward.blend_time,
+            "formula": "x = clamp(t / blend_time, 0, 1); u = x*x*(3 - 2*x), t = seconds since the fall began "
+            "(0 at the first step); observation 'blend' = u if observed else 0",
+        },
     }
     (run_dir / "policy.json").write_text(json.dumps(meta, indent=2))
     print(f"exported {onnx_path} and {run_dir / 'policy.json'} (iteration {policy.iteration} of {policy.path})")

@@ -65,41 +65,50 @@ def mlp(in_dim: int, hidden: list[int], out_dim: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-class HoldPrior(nn.Module):
-    """The action that holds the measured joint angles: (q − nominal) / action_scale.
+class JointPrior(nn.Module):
+    """The action of a joint setpoint read off the observation; the MLP learns the deviation from it.
 
-    Added to the MLP's output, it makes an untrained policy hold whatever pose the
-    robot is in (setpoint = measured angles: pure joint damping), which is where the
-    standard fall strategies start, instead of yanking every joint toward the
-    standing pose. The MLP learns the deviation from holding.
+    hold: the measured joint angles, (q − nominal) / action_scale. An untrained policy then
+          holds whatever pose the robot is in (pure joint damping), where the standard fall
+          strategies start, instead of yanking every joint toward the standing pose.
+    seek: q + u(t)·(q̂ − q), with u(t) the tracking blend the actor observes: the hold while
+          the fall begins, turning into the target joints q̂ as the reward's tracking terms
+          come in. Seeking from the start made landings harder (max impact 1.09× the best
+          strategy, docs/training.md); blended, the prior leaves the impact phase to the hold.
     """
 
-    def __init__(self, joint_columns: torch.Tensor, nominal: torch.Tensor, action_scale: float):
+    def __init__(self, spec: RobotSpec, action_scale: float, seek: bool):
         super().__init__()
-        self.register_buffer("joint_columns", joint_columns.long())
-        self.register_buffer("nominal", nominal.float())
+        columns = actor_slices(spec)
+        self.seek = seek
+        for name in ("joint_pos", "goal_joint_pos", "blend"):
+            self.register_buffer(f"{name}_columns", torch.arange(columns[name].start, columns[name].stop))
+        self.register_buffer("nominal", torch.as_tensor(spec.nominal_q()).float())
         self.register_buffer("inv_scale", torch.tensor(1.0 / action_scale))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return (obs[..., self.joint_columns] - self.nominal) * self.inv_scale
+        q = obs[..., self.joint_pos_columns]
+        if self.seek:
+            u = obs[..., self.blend_columns]
+            q = torch.lerp(q, obs[..., self.goal_joint_pos_columns], u)
+        return (q - self.nominal) * self.inv_scale
 
 
-def hold_prior(config: FallkitConfig, spec: RobotSpec) -> HoldPrior | None:
-    """The policy's hold prior for this robot and action scale, if `train.hold_prior` asks for it."""
-    if not config.train.hold_prior:
+def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
+    """The policy's prior (`train.prior`: none | hold | seek) for this robot and action scale."""
+    if config.train.prior == "none":
         return None
-    joints = actor_slices(spec)["joint_pos"]
-    return HoldPrior(torch.arange(joints.start, joints.stop), torch.as_tensor(spec.nominal_q()), config.env.action_scale)
+    return JointPrior(spec, config.env.action_scale, seek=config.train.prior == "seek")
 
 
 class GaussianPolicyNet(nn.Module):
     """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], init_std: float, hold: HoldPrior | None = None):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], init_std: float, prior: JointPrior | None = None):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
         self.mean = mlp(obs_dim, hidden, act_dim)
-        self.hold = hold
+        self.prior = prior
         self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
         # Small last layer: the first actions are the prior's (or the nominal pose without one).
         nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
@@ -107,8 +116,8 @@ class GaussianPolicyNet(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mean(self.norm(obs))
-        if self.hold is not None:
-            loc = loc + self.hold(obs)
+        if self.prior is not None:
+            loc = loc + self.prior(obs)
         return loc, self.log_std.exp().expand_as(loc)
 
 
@@ -123,11 +132,11 @@ class ValueNet(nn.Module):
 
 
 def make_actor(
-    obs_dim: int, act_dim: int, hidden: list[int], init_std: float, hold: HoldPrior | None = None, action_spec=None
+    obs_dim: int, act_dim: int, hidden: list[int], init_std: float, prior: JointPrior | None = None, action_spec=None
 ) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
     net = TensorDictModule(
-        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, hold), in_keys=["policy"], out_keys=["loc", "scale"]
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior), in_keys=["policy"], out_keys=["loc", "scale"]
     )
     return ProbabilisticActor(
         net,

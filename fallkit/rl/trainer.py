@@ -33,7 +33,7 @@ from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.rl.checkpoint import load_checkpoint, save_checkpoint
-from fallkit.rl.models import hold_prior, make_actor, make_critic, policy_net, value_net
+from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, distributed
 from fallkit.robots import robot_spec
@@ -57,7 +57,7 @@ class Trainer:
         self.env = make_env(config, self.spec, split="train", seed=seed)
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
-        prior = hold_prior(config, self.spec)
+        prior = joint_prior(config, self.spec)
         self.actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior).to(self.env.device)
         self.critic = make_critic(critic_dim, tc.critic_hidden).to(self.env.device)
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
