@@ -22,3 +22,6 @@ Where to look ($run_dir):
   checkpoints/last.pt      the policy; export it with:
                            .venv/bin/python -m fallkit mode=export checkpoint=$run_dir
 TXT
+echo
+# the answer in one line: the learned policy against the best of the three standard strategies
+.venv/bin/python -m fallkit.eval.report "$run_dir"

@@ -87,7 +87,11 @@ def test_presets_compose_and_change_what_they_say():
 def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
     paper = composed("train=paper")
     assert paper.train.prior == "none" and not paper.env.observe_blend and paper.train.init_noise_std == 1.0
-    assert paper.sim.num_envs == 4096 and paper.train.actor_hidden == [512, 512, 512] and paper.train.ppo == PPOConfig()
+    assert paper.sim.num_envs == 4096 and paper.train.actor_hidden == [512, 512, 512] and not paper.train.fade_residual
+    table_iii = PPOConfig(critic_learning_rate=None, value_clip=0.2)
+    assert paper.train.ppo == table_iii and (table_iii.num_minibatches, table_iii.epochs, table_iii.desired_kl) == (4, 5, 0.01)
     with pytest.raises(ConfigError, match="train.prior=seek blends by u"):
         composed("env.observe_blend=false")
-    assert composed("env.observe_blend=false", "train.prior=hold").train.prior == "hold"
+    with pytest.raises(ConfigError, match="train.fade_residual fades the MLP"):
+        composed("env.observe_blend=false", "train.prior=hold")
+    assert composed("env.observe_blend=false", "train.prior=hold", "train.fade_residual=false").train.prior == "hold"

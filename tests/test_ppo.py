@@ -84,3 +84,19 @@ def test_joint_prior_holds_then_seeks_the_target_joints(biped):
     torch.testing.assert_close(seek[0], hold[0])  # u = 0: the hold
     torch.testing.assert_close(seek[1], ((q[1] + goal[1]) / 2 - nominal) / scale)
     torch.testing.assert_close(seek[2], (goal[2] - nominal) / scale)  # u = 1: the target joints
+
+
+def test_faded_residual_leaves_the_end_of_the_fall_to_the_prior(biped):
+    from fallkit.env.observations import actor_slices
+    from fallkit.rl.models import GaussianPolicyNet, JointPrior
+
+    cols = actor_slices(biped)
+    dim, j = cols["blend"].stop, len(biped.joints)
+    prior = JointPrior(biped, 0.5, seek=True, fade=True)
+    net = GaussianPolicyNet(dim, j, [8], 0.3, prior)
+    torch.nn.init.normal_(net.mean[-1].weight)  # a residual that is not ~0
+    obs = torch.randn(2, dim)
+    obs[:, cols["blend"]] = torch.tensor([[0.0], [1.0]])
+    loc, _ = net(obs)
+    assert not torch.allclose(loc[0], prior(obs)[0])  # u = 0: the MLP acts
+    torch.testing.assert_close(loc[1], prior(obs)[1])  # u = 1: the prior alone

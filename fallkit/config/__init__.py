@@ -57,6 +57,11 @@ class FallkitConfig(Section):
                 "train.prior=seek blends by u(t), which the actor then must observe: set env.observe_blend=true "
                 "or train.prior=hold|none"
             )
+        if self.train.fade_residual and (self.train.prior == "none" or not self.env.observe_blend):
+            raise ValueError(
+                "train.fade_residual fades the MLP into a prior by u(t): it needs train.prior=hold|seek and "
+                "env.observe_blend=true"
+            )
         return self
 
 

@@ -2,7 +2,7 @@
 
 The actor observation (what the robot can measure, plus the goal) is declared once,
 in `ACTOR_OBSERVATION`: name, size and the noise level that applies to it. The
-observation itself, its noise, the policy's hold prior (`fallkit.rl.models`) and the
+observation itself, its noise, the policy's joint prior (`fallkit.rl.models`) and the
 export metadata (`fallkit.rl.export`) are all derived from that declaration, so the
 order is written in one place. Gaussian noise goes on the measured parts only.
 

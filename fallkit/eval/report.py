@@ -157,3 +157,24 @@ def markdown_report(summary: dict, info: dict, figures: list[str]) -> str:
 
 def _label(name: str) -> str:
     return "seek (reference)" if name == SEEK else name
+
+
+def main(argv: list[str] | None = None) -> None:
+    """`python -m fallkit.eval.report <run dir or eval.json>`: the ratio lines of a finished evaluation."""
+    import argparse
+    import sys
+
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("run", type=Path, help="a run directory with eval.json, or the eval.json itself")
+    path = p.parse_args(argv).run
+    path = path / "eval.json" if path.is_dir() else path
+    if not path.is_file():
+        sys.exit(f"fallkit: error: {path}: no eval.json here; evaluate with mode=eval checkpoint=<run> first")
+    summary = json.loads(path.read_text())
+    for name in (POLICY, SEEK):
+        if name in summary:
+            print(ratio_line(summary, name))
+
+
+if __name__ == "__main__":
+    main()

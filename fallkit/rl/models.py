@@ -77,10 +77,10 @@ class JointPrior(nn.Module):
           strategy, docs/training.md); blended, the prior leaves the impact phase to the hold.
     """
 
-    def __init__(self, spec: RobotSpec, action_scale: float, seek: bool):
+    def __init__(self, spec: RobotSpec, action_scale: float, seek: bool, fade: bool = False):
         super().__init__()
         columns = actor_slices(spec)
-        self.seek = seek
+        self.seek, self.fade = seek, fade
         for name in ("joint_pos", "goal_joint_pos", "blend"):
             self.register_buffer(f"{name}_columns", torch.arange(columns[name].start, columns[name].stop))
         self.register_buffer("nominal", torch.as_tensor(spec.nominal_q()).float())
@@ -93,12 +93,22 @@ class JointPrior(nn.Module):
             q = torch.lerp(q, obs[..., self.goal_joint_pos_columns], u)
         return (q - self.nominal) * self.inv_scale
 
+    def residual_weight(self, obs: torch.Tensor) -> torch.Tensor | float:
+        """How much of the MLP's deviation the policy mean keeps: 1 − u(t) with `fade`, else 1.
+
+        Fading hands the end of the fall to the prior: the deviation learned for the impact
+        phase does not leak into the final pose (without it, MJE 0.24 rad where seek alone
+        reaches 0.06, docs/training.md).
+        """
+        return 1.0 - obs[..., self.blend_columns] if self.fade else 1.0
+
 
 def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
     """The policy's prior (`train.prior`: none | hold | seek) for this robot and action scale."""
     if config.train.prior == "none":
         return None
-    return JointPrior(spec, config.env.action_scale, seek=config.train.prior == "seek")
+    tc = config.train
+    return JointPrior(spec, config.env.action_scale, seek=tc.prior == "seek", fade=tc.fade_residual)
 
 
 class GaussianPolicyNet(nn.Module):
@@ -117,7 +127,7 @@ class GaussianPolicyNet(nn.Module):
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mean(self.norm(obs))
         if self.prior is not None:
-            loc = loc + self.prior(obs)
+            loc = torch.addcmul(self.prior(obs), loc, torch.as_tensor(self.prior.residual_weight(obs)))
         return loc, self.log_std.exp().expand_as(loc)
 
 

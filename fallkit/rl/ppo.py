@@ -61,11 +61,18 @@ class PPO:
             critic_coeff=cfg.value_coef,
             loss_critic_type="l2",
             normalize_advantage=True,
-            clip_value=cfg.clip,
+            clip_value=cfg.value_clip if cfg.value_clip is not None else False,
         )
         self.gae = GAE(gamma=cfg.gamma, lmbda=cfg.lam, value_network=critic, average_gae=False)
         self.params = [p for p in self.loss.parameters() if p.requires_grad]
-        self.optimizer = torch.optim.Adam(self.params, lr=cfg.learning_rate)
+        # Two groups: the actor's rate follows the KL rule; the critic's follows it too unless it has its
+        # own (critic_learning_rate): a KL-bound step is about the policy, and ties the critic to it.
+        critic_ids = {id(p) for p in critic.parameters()}
+        actor_params = [p for p in self.params if id(p) not in critic_ids]
+        critic_params = [p for p in self.params if id(p) in critic_ids]
+        self.optimizer = torch.optim.Adam(
+            [{"params": actor_params}, {"params": critic_params}], lr=cfg.learning_rate
+        )
         self.learning_rate = cfg.learning_rate
 
     def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, float]:
@@ -89,8 +96,9 @@ class PPO:
                     kl = gaussian_kl(data["loc"], data["scale"], loc, scale)
                     kl = _mean_over_ranks(kl)
                 self.learning_rate = adapt_learning_rate(self.learning_rate, kl.item(), cfg)
-                for group in self.optimizer.param_groups:
-                    group["lr"] = self.learning_rate
+                actor_group, critic_group = self.optimizer.param_groups
+                actor_group["lr"] = self.learning_rate
+                critic_group["lr"] = cfg.critic_learning_rate or self.learning_rate
 
                 out = self.loss(data)
                 loss = out["loss_objective"] + out["loss_critic"]
