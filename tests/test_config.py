@@ -15,10 +15,10 @@ import fallkit
 from fallkit.app import register_configs
 from fallkit.config import (
     ConfigError,
-    PPOConfig,
     DatasetConfig,
     EnvConfig,
     EvalConfig,
+    PPOConfig,
     RenderConfig,
     RewardConfig,
     SimConfig,

@@ -230,3 +230,19 @@ def test_ratios_are_over_the_best_standard_strategy():
         "policy / best standard strategy: max impact 0.90x, fall-phase mean impact 0.90x, MROE 1.00x, MJE 0.20x "
         "(lower is better)"
     )
+
+
+def test_report_cli_prints_the_ratio_lines_or_one_clear_error(tmp_path):
+    stat = {"mean": 1.0}
+    row = {m: stat for m in ("max_impact_force", "fall_mean_impact_force", "mroe", "mje")}
+    (tmp_path / "eval.json").write_text(json.dumps({"policy": row, **{s: row for s in STRATEGIES}, "seek": row}))
+    cmd = [sys.executable, "-m", "fallkit.eval.report"]
+    ok = subprocess.run([*cmd, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and ok.stdout.splitlines() == [
+        "policy / best standard strategy: max impact 1.00x, fall-phase mean impact 1.00x, MROE 1.00x, MJE 1.00x "
+        "(lower is better)",
+        "seek / best standard strategy: max impact 1.00x, fall-phase mean impact 1.00x, MROE 1.00x, MJE 1.00x "
+        "(lower is better)",
+    ]
+    missing = subprocess.run([*cmd, str(tmp_path / "nosuch")], capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and missing.stderr.count("\n") == 1 and "no eval.json here" in missing.stderr

@@ -169,7 +169,8 @@ def main(argv: list[str] | None = None) -> None:
     path = p.parse_args(argv).run
     path = path / "eval.json" if path.is_dir() else path
     if not path.is_file():
-        sys.exit(f"fallkit: error: {path}: no eval.json here; evaluate with mode=eval checkpoint=<run> first")
+        print(f"fallkit: error: {path}: no eval.json here; evaluate with mode=eval checkpoint=<run> first", file=sys.stderr)
+        sys.exit(2)
     summary = json.loads(path.read_text())
     for name in (POLICY, SEEK):
         if name in summary:
