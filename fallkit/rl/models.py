@@ -93,14 +93,15 @@ class JointPrior(nn.Module):
             q = torch.lerp(q, obs[..., self.goal_joint_pos_columns], u)
         return (q - self.nominal) * self.inv_scale
 
-    def residual_weight(self, obs: torch.Tensor) -> torch.Tensor | float:
+    def residual_weight(self, obs: torch.Tensor) -> torch.Tensor:
         """How much of the MLP's deviation the policy mean keeps: 1 − u(t) with `fade`, else 1.
 
         Fading hands the end of the fall to the prior: the deviation learned for the impact
         phase does not leak into the final pose (without it, MJE 0.24 rad where seek alone
         reaches 0.06, docs/training.md).
         """
-        return 1.0 - obs[..., self.blend_columns] if self.fade else 1.0
+        u = obs[..., self.blend_columns]
+        return 1.0 - u if self.fade else torch.ones_like(u)
 
 
 def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
@@ -127,7 +128,7 @@ class GaussianPolicyNet(nn.Module):
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mean(self.norm(obs))
         if self.prior is not None:
-            loc = torch.addcmul(self.prior(obs), loc, torch.as_tensor(self.prior.residual_weight(obs)))
+            loc = torch.addcmul(self.prior(obs), loc, self.prior.residual_weight(obs))
         return loc, self.log_std.exp().expand_as(loc)
 
 
