@@ -100,3 +100,14 @@ def test_faded_residual_leaves_the_end_of_the_fall_to_the_prior(biped):
     loc, _ = net(obs)
     assert not torch.allclose(loc[0], prior(obs)[0])  # u = 0: the MLP acts
     torch.testing.assert_close(loc[1], prior(obs)[1])  # u = 1: the prior alone
+
+
+def test_checkpoints_get_the_users_normal_file_mode(tmp_path):
+    import os
+
+    mask = os.umask(0o022)
+    try:
+        path = save_checkpoint(tmp_path / "c.pt", {"iteration": 1})
+    finally:
+        os.umask(mask)
+    assert path.stat().st_mode & 0o777 == 0o644  # not mkstemp's 0600

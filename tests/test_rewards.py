@@ -208,3 +208,12 @@ def test_plugin_term_added_by_name_and_replacing_a_builtin(plugin_term):
     torch.testing.assert_close(replaced(ctx), torch.full((N,), 0.02 * 200.0 * -2.0))
     with pytest.raises(ValueError, match="a term weight must be a number"):
         RewardConfig(**{plugin_term: "heavy"})
+
+
+def test_negative_weights_are_refused_with_the_fix():
+    from fallkit.config import ConfigError, FallkitConfig, validate
+
+    raw = FallkitConfig(robot={"name": "biped20"}).model_dump()
+    raw["reward"]["impact"] = -200.0
+    with pytest.raises(ConfigError, match=r"reward: impact=-200: weights must be >= 0 .* use 200"):
+        validate(raw)

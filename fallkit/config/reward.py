@@ -63,6 +63,13 @@ class RewardConfig(BaseModel):
                 )
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(f"'{key}': a term weight must be a number, got {value!r}")
+        negative = {k: w for k, w in self.weights().items() if w < 0}
+        if negative:
+            name, w = next(iter(negative.items()))
+            raise ValueError(
+                f"{name}={w:g}: weights must be >= 0 — every term is already signed (penalties return "
+                f"negative values), so a negative weight would reward what it should penalise; use {abs(w):g}"
+            )
         for term, fn in self.terms.items():
             if fn not in registered:
                 raise ValueError(

@@ -32,6 +32,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
             torch.save({"format_version": FORMAT_VERSION, **payload}, f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600: colleagues could not read the checkpoint
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -66,3 +67,10 @@ def load_checkpoint(where: str | Path, map_location: str | torch.device = "cpu")
         )
     data["path"] = str(path)
     return data
+
+
+def _umask() -> int:
+    """The process's file-creation mask (reading it means setting it; put back at once)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
