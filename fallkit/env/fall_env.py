@@ -231,6 +231,7 @@ class FallEnv(EnvBase):
 
         frame = path_frame(st.root_quat)
         t = self.step_count * self.dt
+        u = blend(t, self.reward_cfg.blend_time)  # once per step: the reward's and the actor's u(t)
         ctx = RewardContext(
             state=st,
             action=action,
@@ -240,7 +241,7 @@ class FallEnv(EnvBase):
             target_joint_pos=self.goal_joint_pos,
             sensitivity=self.sensitivity,
             time=t,
-            blend=blend(t, self.reward_cfg.blend_time),
+            blend=u,
             force_unit=self.reward_cfg.force_unit,
             force_clip=self.reward_cfg.force_clip,
             dt=self.dt,
@@ -249,7 +250,7 @@ class FallEnv(EnvBase):
         self.last_last_action = self.last_action
         self.last_action = action.clone()
         truncated = ((self.step_count >= self.max_steps) | unstable).view(-1, 1)
-        out = self._observation(truncated, frame)
+        out = self._observation(truncated, frame, u)
         out.set("reward", reward.view(-1, 1))
         return out
 
@@ -321,17 +322,14 @@ class FallEnv(EnvBase):
 
     # ---- internals ----------------------------------------------------------------
 
-    def _observed_blend(self) -> torch.Tensor:
-        """u(t) for the actor (zeros where it does not observe time)."""
-        u = self.tracking_blend()
-        return u if self.env_cfg.observe_blend else torch.zeros_like(u)
-
-    def _observation(self, truncated: torch.Tensor, frame=None) -> TensorDictBase:
+    def _observation(self, truncated: torch.Tensor, frame=None, u: torch.Tensor | None = None) -> TensorDictBase:
         st = self.sim.state
         frame = frame if frame is not None else path_frame(st.root_quat)
+        u = u if u is not None else self.tracking_blend()
+        observed = u if self.env_cfg.observe_blend else torch.zeros_like(u)  # the paper's actor has no clock
         actor = actor_observation(
             frame, st.root_quat, st.root_lin_vel, st.root_ang_vel, st.joint_pos, st.joint_vel,
-            self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos, self._observed_blend(),
+            self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos, observed,
         )  # fmt: skip
         critic = critic_observation(
             actor, frame, self.step_count * (1.0 / self.max_steps), self._friction, st.root_pos[:, 2],
