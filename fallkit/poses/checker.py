@@ -14,6 +14,7 @@ import mujoco.batch
 import numpy as np
 import torch
 
+from fallkit.errors import RobotSpecError
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import Layout
 
@@ -123,7 +124,7 @@ class PoseChecker:
             have += len(ok)
             if have >= n:
                 return torch.cat(kept)[:n]
-        raise RuntimeError(
+        raise RobotSpecError(
             f"robot '{self.spec.name}': found only {have} of {n} self-collision-free joint configurations "
             f"in {max_rounds} rounds; the joint limits or collision geometry make almost every pose self-collide"
         )

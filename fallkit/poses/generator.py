@@ -37,6 +37,7 @@ from tqdm import tqdm
 
 from fallkit import __version__
 from fallkit.config import DatasetConfig
+from fallkit.errors import ConfigError
 from fallkit.poses.bins import OrientationBins, select_uniform, uniformity
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.dataset import PoseDataset
@@ -96,11 +97,18 @@ class _Candidates:
 
 
 class _DropPool:
-    """`num_worlds` drops in flight; a finished world is refilled with the next candidate."""
+    """Up to `num_worlds` drops in flight; a finished world is refilled with the next candidate
+    until `budget` drops have started, then left idle until the drops in flight have ended.
 
-    def __init__(self, spec: RobotSpec, cfg: DatasetConfig, g: torch.Generator, backend: str, sim_options: dict):
-        w = cfg.num_worlds
-        self.cfg = cfg
+    The pool never starts more worlds than the budget: a request for 50 poses (budget 300)
+    must not start 1024 drops and stop before any of them has landed.
+    """
+
+    def __init__(
+        self, spec: RobotSpec, cfg: DatasetConfig, g: torch.Generator, backend: str, sim_options: dict, budget: int
+    ):
+        w = max(1, min(cfg.num_worlds, budget))
+        self.cfg, self.budget = cfg, budget
         checker = PoseChecker(spec)
         self.cands = _Candidates(checker, g, cfg.settle.drop_height, block=max(256, min(4096, w)))
         self.sim = make_sim(spec, w, backend, **sim_options)
@@ -112,6 +120,7 @@ class _DropPool:
         self.hold = joints.float().to(self.sim.device)
         self.last_bin = torch.full((w,), -1, dtype=torch.long)
         self.in_full = torch.zeros(w, dtype=torch.long)  # steps spent slowly in one over-full bin
+        self.active = torch.ones(w, dtype=torch.bool)  # a drop is in flight (idle once the budget is spent)
         self.drops = w
         self.steps = 0
 
@@ -133,11 +142,15 @@ class _DropPool:
         self.in_full = torch.where(stays, self.in_full + 1, torch.zeros_like(self.in_full))
         self.last_bin = now_bin
         abort = ~ended & (self.in_full >= cfg.abort_steps) if cfg.abort_steps > 0 else torch.zeros_like(ended)
+        abort &= self.active
         return abort, now_bin
 
     def refill(self, finished: torch.Tensor) -> None:
-        """Start the next candidates in the finished worlds (in world order)."""
-        ids = torch.nonzero(finished).squeeze(1)
+        """Start the next candidates in the finished worlds (in world order) while the budget lasts."""
+        ids = torch.nonzero(finished & self.active).squeeze(1)
+        room = max(0, self.budget - self.drops)
+        self.active[ids[room:]] = False
+        ids = ids[:room]
         if len(ids):
             qpos, joints = self.cands.take(len(ids))
             self.sim.reset(ids, qpos, self.zero_v[: len(ids)])
@@ -218,17 +231,19 @@ class EndPoseGenerator:
         cfg, spec = self.config, self.spec
         total = cfg.train + cfg.test
         g = torch.Generator().manual_seed(cfg.seed)
-        pool = _DropPool(spec, cfg, g, self.backend, self.sim_options)
+        max_drops = int(math.ceil(cfg.max_drops * total))
+        pool = _DropPool(spec, cfg, g, self.backend, self.sim_options, budget=max_drops)
         tally = _Tally(self.bins.count)
-        max_drops = int(cfg.max_drops * total)
         t0 = time.perf_counter()
         bar = tqdm(total=total, desc=f"end poses ({spec.name})", unit="pose", disable=not progress, mininterval=1.0)
         while True:
             balance, finished = self._step(pool, tally, total)
             self._show(bar, pool, tally, balance, total)
-            if balance.done or pool.drops >= max_drops:
+            if balance.done:
                 break
             pool.refill(finished)
+            if not pool.active.any():  # the budget is spent and every drop has ended
+                break
         if balance.done:
             bar.update(total - bar.n)
         bar.close()
@@ -240,7 +255,8 @@ class EndPoseGenerator:
     def _step(self, pool: _DropPool, tally: _Tally, total: int) -> tuple[_Balance, torch.Tensor]:
         """Step the drops, record the settled poses, stop the hopeless ones: (rebalancing, finished [W])."""
         st, at_rest, timeout = pool.step()
-        bad = st.unstable
+        at_rest, timeout = at_rest & pool.active, timeout & pool.active  # idle worlds record nothing
+        bad = st.unstable & pool.active
         ok = at_rest & ~bad
         if ok.any():
             tally.record(st, ok, pool.rest.age, self.bins)
@@ -263,7 +279,7 @@ class EndPoseGenerator:
         """Fail when too few poses came to rest; warn when the bins did not become uniform."""
         cfg = self.config
         if not balance.feasible:
-            raise RuntimeError(
+            raise ConfigError(
                 f"end poses ({self.spec.name}): only {int(tally.counts.sum())} of {total} poses came to rest in "
                 f"{pool.drops} drops ({tally.unsettled} not at rest within {cfg.settle.max_time:g} s, "
                 f"{tally.unstable} unstable); raise dataset.max_drops or dataset.settle.max_time"
@@ -285,7 +301,7 @@ class EndPoseGenerator:
             "unstable": tally.unstable,
             "aborted_overfull": tally.aborted_overfull,
             "settled": settled,
-            "in_flight_at_stop": int((~finished).sum()),
+            "in_flight_at_stop": int((pool.active & ~finished).sum()),
             "discarded_overfull": int(tally.counts.sum() - balance.keep.sum()),
             "kept": int(balance.keep.sum()),
             "hist_before": tally.seen.tolist(),
