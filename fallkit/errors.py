@@ -9,6 +9,8 @@ keep working.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 
 class FallkitError(Exception):
     """A problem the user can fix; the message is one line naming it and the fix."""
@@ -44,3 +46,14 @@ class RenderError(FallkitError, RuntimeError):
 
 class SimBufferError(FallkitError, RuntimeError):
     """mujoco_warp's preallocated contact or constraint buffer overflowed; names the sim.* key to raise."""
+
+
+def require_file(path: str | Path, what: str, error: type[FallkitError] = FallkitError) -> Path:
+    """`path` as a Path when it is an existing file; else `error` saying whether it is missing or a directory."""
+    path = Path(path)
+    if path.is_dir():
+        article = "an" if what[0] in "aeiou" else "a"
+        raise error(f"{path}: is a directory, not {article} {what} file")
+    if not path.is_file():
+        raise error(f"{path}: {what} not found")
+    return path

@@ -2,10 +2,26 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from fallkit.config import DatasetConfig
+from fallkit.errors import PoseFileError
+from fallkit.poses import load_end_poses
+from fallkit.poses.dataset import default_dataset, load_dataset, save_dataset
 from fallkit.poses.generator import EndPoseGenerator
+
+
+def fallkit_cli(*args: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout)  # fmt: skip
 
 
 def test_a_small_dataset_is_made_with_the_default_pool(biped):
@@ -15,3 +31,70 @@ def test_a_small_dataset_is_made_with_the_default_pool(biped):
     assert len(gen.joint_pos) == 50 and (gen.split == "test").sum() == 10
     assert gen.stats["drops"] <= 6 * 50
     assert np.isfinite(gen.joint_pos.numpy()).all()
+
+
+# ---- item 5: artist poses are optional --------------------------------------------------------------
+
+
+def test_mode_poses_for_a_robot_without_artist_poses_succeeds(tmp_path):
+    """go1 ships no artist poses (as every new plugin): the dataset is the product, exit 0."""
+    r = fallkit_cli("mode=poses", "robot=go1", "dataset.train=24", "dataset.test=8", "dataset.num_worlds=32",
+                    "dataset.bands=2", "dataset.sectors=2", "dataset.sheet=0", f"dataset.out={tmp_path / 'go1.npz'}",
+                    f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "artist poses: skipped (robot 'go1' ships none" in r.stdout
+    assert (tmp_path / "go1.npz").is_file()
+
+
+# ---- item 2: every array a dataset brings is checked at load --------------------------------------
+
+
+def _broken_dataset(biped, tmp_path, name: str, row: int, value) -> Path:
+    ds = load_dataset(default_dataset(biped))
+    keep = np.r_[ds.rows("train")[:20], ds.rows("test")[:5]]
+    arrays = {k: getattr(ds, k)[keep].copy() for k in ("joint_pos", "root_quat", "root_height", "split", "bin")}
+    arrays[name][row] = value
+    return save_dataset(tmp_path / f"bad_{name}.npz", replace(ds, **arrays))
+
+
+@pytest.mark.parametrize(
+    "name, value, message",
+    [
+        ("joint_pos", np.nan, "array 'joint_pos' row 3 is not finite"),
+        ("root_quat", np.inf, "array 'root_quat' row 3 is not finite"),
+        ("root_height", np.nan, "array 'root_height' row 3 is not finite"),
+        ("root_quat", [0.5, 0.0, 0.0, 0.0], "array 'root_quat' row 3 is not a unit quaternion"),
+        ("split", "valid", "array 'split' row 3 is not one of"),
+        ("joint_pos", 9.0, "array 'joint_pos' row 3: joint '.*' = 9.0000 rad is outside its limits"),
+    ],
+)
+def test_a_dataset_with_bad_values_is_refused_at_load(biped, tmp_path, name, value, message):
+    path = _broken_dataset(biped, tmp_path, name, 3, value)
+    with pytest.raises(PoseFileError, match=f"{path}: {message}"):
+        load_end_poses(path, biped)
+
+
+# ---- item 7: user mistakes that were tracebacks ---------------------------------------------------
+
+
+def test_a_binary_pose_file_and_a_directory_are_named(biped, tmp_path):
+    binary = tmp_path / "poses.yaml"
+    binary.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(PoseFileError, match="poses.yaml: not a text file"):
+        load_end_poses(binary, biped)
+    folder = tmp_path / "x.yaml"
+    folder.mkdir()
+    with pytest.raises(PoseFileError, match="x.yaml: is a directory, not an artist pose file"):
+        load_end_poses(folder, biped)
+    (tmp_path / "d.npz").mkdir()
+    with pytest.raises(PoseFileError, match="d.npz: is a directory"):
+        load_end_poses(tmp_path / "d.npz", biped)
+
+
+def test_blend_time_longer_than_the_episode_is_one_line(tmp_path):
+    r = fallkit_cli("reward.blend_time=9", "env.episode_length=2", cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [
+        "fallkit: error: reward.blend_time=9 s is longer than env.episode_length=2 s, so u(t) would never reach 1 "
+        "(paper: T_blend <= T): shorten reward.blend_time or lengthen env.episode_length"
+    ]

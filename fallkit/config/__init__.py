@@ -64,6 +64,16 @@ class FallkitConfig(Section):
             )
         return self
 
+    @model_validator(mode="after")
+    def _blend_within_the_episode(self) -> "FallkitConfig":
+        if self.reward.blend_time > self.env.episode_length:
+            raise ValueError(
+                f"reward.blend_time={self.reward.blend_time:g} s is longer than env.episode_length="
+                f"{self.env.episode_length:g} s, so u(t) would never reach 1 (paper: T_blend <= T): "
+                "shorten reward.blend_time or lengthen env.episode_length"
+            )
+        return self
+
 
 def validate(raw: dict[str, Any]) -> FallkitConfig:
     """Validate a resolved config dict; raise ConfigError naming every bad key."""

@@ -33,7 +33,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from fallkit import registry
-from fallkit.config import EnvConfig, RewardConfig
+from fallkit.config import ConfigError, EnvConfig, RewardConfig
 from fallkit.env.observations import (
     actor_layout,
     actor_observation,
@@ -373,7 +373,7 @@ def _check_inputs(
             "(fallkit.env.build.make_env does)"
         )
     if reward_cfg.blend_time > env_cfg.episode_length:
-        raise ValueError(
+        raise ConfigError(
             f"reward.blend_time ({reward_cfg.blend_time} s) must not exceed env.episode_length "
             f"({env_cfg.episode_length} s): u(t) would never reach 1 (paper: T_blend <= T)"
         )

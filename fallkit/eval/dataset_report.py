@@ -19,7 +19,7 @@ import torch
 from fallkit.config import DatasetConfig, FallkitConfig
 from fallkit.errors import RenderError
 from fallkit.eval.contact_sheet import contact_sheet, histogram_plot
-from fallkit.poses.artist import artist_file, read_artist_poses, settle_artist_poses
+from fallkit.poses.artist import read_artist_poses, settle_artist_poses, shipped_artist_file
 from fallkit.poses.bins import OrientationBins, format_histogram
 from fallkit.poses.dataset import load_dataset, save_dataset
 from fallkit.poses.generator import EndPoseGenerator, to_dataset
@@ -85,8 +85,10 @@ def _pictures(spec: RobotSpec, pc: DatasetConfig, ds, st: dict[str, Any], run_di
             titles = [f"#{i} {ds.split[i]}, bin {ds.bin[i]}" for i in range(k)]
             sheet = contact_sheet(spec, q.numpy(), titles, run_dir / "poses_generated.png")
             print(f"contact sheet (generated sample): {sheet}")
-        if pc.artist:
-            path = artist_file(spec) if pc.artist == "artist" else Path(pc.artist)
+        path = shipped_artist_file(spec) if pc.artist == "artist" else Path(pc.artist) if pc.artist else None
+        if pc.artist == "artist" and path is None:
+            print(f"artist poses: skipped (robot '{spec.name}' ships none; dataset.artist=<file.yaml> draws yours)")
+        elif path is not None:
             poses = read_artist_poses(path, spec)
             _, settled = settle_artist_poses(path, spec, poses)
             sheet = contact_sheet(spec, settled.numpy(), [p.name for p in poses], run_dir / "poses_artist.png", cols=5)

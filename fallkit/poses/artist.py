@@ -23,7 +23,7 @@ import torch
 import yaml
 
 from fallkit.config import SettleConfig
-from fallkit.errors import PoseFileError
+from fallkit.errors import PoseFileError, require_file
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.poses.settle import settle
@@ -116,6 +116,8 @@ class _Reader:
             text = self.path.read_text()
         except OSError as exc:
             raise PoseFileError(f"{self.path}: cannot read artist pose file ({exc.strerror})") from None
+        except UnicodeDecodeError:
+            raise PoseFileError(f"{self.path}: not a text file (not UTF-8); an artist pose file is YAML text") from None
         try:
             doc = yaml.load(text, Loader=_LineLoader)
         except _DuplicateKey as exc:
@@ -255,9 +257,7 @@ def ground_side(quat: np.ndarray | torch.Tensor) -> str:
 
 def read_artist_poses(path: str | Path, spec: RobotSpec) -> list[ArtistPose]:
     """Parse and validate an artist pose file (limits, self-collision); not settled yet."""
-    path = Path(path)
-    if not path.is_file():
-        raise PoseFileError(f"{path}: artist pose file not found")
+    path = require_file(path, "artist pose", PoseFileError)
     poses = _Reader(path, spec).parse()
     _check_self_collision(path, spec, poses)
     return poses
@@ -311,6 +311,14 @@ def settle_artist_poses(path: str | Path, spec: RobotSpec, poses: list[ArtistPos
         names=[p.name for p in poses],
     )
     return ps, res.qpos
+
+
+def shipped_artist_file(spec: RobotSpec) -> Path | None:
+    """The robot's shipped artist poses, or None: they are optional (a new plugin ships none)."""
+    try:
+        return artist_file(spec)
+    except PoseFileError:
+        return None
 
 
 def artist_file(spec: RobotSpec) -> Path:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fallkit.errors import PoseFileError
+from fallkit.errors import PoseFileError, require_file
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
 
@@ -82,9 +82,7 @@ def save_dataset(path: str | Path, ds: PoseDataset) -> Path:
 
 def read_meta(path: str | Path) -> dict[str, Any]:
     """The provenance of a dataset file, without loading its arrays."""
-    path = Path(path)
-    if not path.is_file():
-        raise PoseFileError(f"{path}: pose dataset not found")
+    path = require_file(path, "pose dataset", PoseFileError)
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
@@ -119,6 +117,7 @@ def load_dataset(path: str | Path) -> PoseDataset:
     )
     if not shapes_ok:
         raise PoseFileError(f"{path}: pose dataset arrays have inconsistent shapes")
+    _check_values(path, a)
     return PoseDataset(
         robot=meta["robot"],
         model_hash=meta["model_hash"],
@@ -130,6 +129,31 @@ def load_dataset(path: str | Path) -> PoseDataset:
         bin=a["bin"],
         meta=meta,
     )
+
+
+def _first_bad(bad: np.ndarray) -> int | None:
+    """The first row index where `bad` ([P] or [P, ...]) holds, or None."""
+    rows = np.flatnonzero(bad.reshape(len(bad), -1).any(axis=1))
+    return int(rows[0]) if len(rows) else None
+
+
+def _check_values(path: Path, a: dict[str, np.ndarray]) -> None:
+    """Every value a dataset brings, checked once at load: a NaN angle would otherwise flow into
+    MuJoCo's controls ("Nan in CTRL") and the metrics (MJE nan) far from the file that caused it."""
+    checks = [
+        ("joint_pos", ~np.isfinite(a["joint_pos"]), "is not finite"),
+        ("root_quat", ~np.isfinite(a["root_quat"]), "is not finite"),
+        ("root_height", ~np.isfinite(a["root_height"]), "is not finite"),
+        ("root_quat", np.abs(np.linalg.norm(np.nan_to_num(a["root_quat"], posinf=0.0, neginf=0.0), axis=-1) - 1.0) > 1e-3, "is not a unit quaternion"),
+        ("split", ~np.isin(a["split"], SPLITS), f"is not one of {list(SPLITS)}"),
+    ]
+    for name, bad, problem in checks:
+        row = _first_bad(bad)
+        if row is not None:
+            raise PoseFileError(
+                f"{path}: array '{name}' row {row} {problem} ({a[name][row]!r}); "
+                f"regenerate the dataset with python -m fallkit mode=poses"
+            )
 
 
 def check_robot(ds: PoseDataset | dict[str, Any], spec: RobotSpec, path: str | Path) -> None:
@@ -151,8 +175,25 @@ def check_robot(ds: PoseDataset | dict[str, Any], spec: RobotSpec, path: str | P
         )
     if isinstance(ds, PoseDataset) and ds.joint_names != spec.joint_names:
         raise PoseFileError(f"{path}: dataset joints {ds.joint_names} differ from robot '{spec.name}' joints {spec.joint_names}")
+    if isinstance(ds, PoseDataset):
+        _check_limits(ds, spec, path)
     if robot != spec.name:
         log.info("end poses: %s was made for '%s', the same body as '%s' (model hash %s)", path, robot, spec.name, model_hash)
+
+
+def _check_limits(ds: PoseDataset, spec: RobotSpec, path: str | Path) -> None:
+    """Joint angles within the robot's limits (the generator clamps to them; 1e-3 rad float slack)."""
+    lim = np.asarray(spec.joint_limits, dtype=np.float64)
+    q = ds.joint_pos.astype(np.float64)
+    excess = np.maximum(lim[:, 0] - q, q - lim[:, 1])  # > 0 outside
+    row = _first_bad(excess > 1e-3)
+    if row is not None:
+        j = int(np.argmax(excess[row]))
+        raise PoseFileError(
+            f"{path}: array 'joint_pos' row {row}: joint '{ds.joint_names[j]}' = {q[row, j]:.4f} rad is outside its "
+            f"limits [{lim[j, 0]:.4f}, {lim[j, 1]:.4f}] by {excess[row, j]:.4f} rad; "
+            f"regenerate the dataset with python -m fallkit mode=poses robot={spec.name}"
+        )
 
 
 def take_count(n: int, fraction: float, where: str) -> int:
