@@ -98,3 +98,14 @@ def test_blend_time_longer_than_the_episode_is_one_line(tmp_path):
         "fallkit: error: reward.blend_time=9 s is longer than env.episode_length=2 s, so u(t) would never reach 1 "
         "(paper: T_blend <= T): shorten reward.blend_time or lengthen env.episode_length"
     ]
+
+
+# ---- item 3: requests that were silently ignored ---------------------------------------------------
+
+
+def test_a_gpu_asked_of_the_cpu_backend_is_refused(tmp_path):
+    r = fallkit_cli("sim.device=cuda:0", cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "fallkit: error: sim: device=cuda:0 needs the warp backend (the mujoco backend runs on the CPU): "
+        "add sim=warp, or drop sim.device"
+    ]

@@ -218,6 +218,17 @@ def test_joints_named_in_the_spec_must_be_revolute_joints_of_the_urdf(tmp_path):
         urdf_to_mjcf(path, root_link="arm", cache_dir=tmp_path)
 
 
+def test_a_revolute_joint_without_limits_warns_and_spans_pi(tmp_path):
+    path = write_urdf(tmp_path)
+    path.write_text(path.read_text().replace('<limit lower="-1.5" upper="1.5" effort="5" velocity="10"/>', ""))
+    with pytest.warns(URDFWarning, match=r"robot\.urdf: joint 'shoulder' is revolute without <limit lower=… upper=…>: "
+                                         r"it is simulated unlimited"):  # fmt: skip
+        spec = robot_from_urdf("two", path, joints=[JointSpec(name="shoulder", kp=5, kd=0.1, torque_limit=5)],
+                               components={"all": ComponentSpec(bodies=["body", "arm"], weight=1.0)},
+                               cache_dir=tmp_path)  # fmt: skip
+    assert spec.joint_limits[0].tolist() == pytest.approx([-np.pi, np.pi])
+
+
 def test_mode_list_shows_the_plugins_and_their_distributions(tmp_path):
     # The example plugin's reward weight and sampler role must also pass config validation.
     args = ["mode=list", "+reward.root_spin=0.5", "env.samplers.initial_state=standing_push"]

@@ -127,7 +127,7 @@ def urdf_to_mjcf(
 
 
 def _check_joints(tree: UrdfTree, joints: list[JointSpec]) -> None:
-    """Every actuated joint must be a revolute or continuous joint of the URDF."""
+    """Every actuated joint must be a revolute or continuous joint of the URDF; a revolute one without limits warns."""
     movable = {n: j.get("type") for n, j in tree.joints.items()}
     for j in joints:
         if j.name not in movable:
@@ -139,6 +139,12 @@ def _check_joints(tree: UrdfTree, joints: list[JointSpec]) -> None:
             raise URDFError(
                 f"{tree.path}: joints: joint '{j.name}' is {movable[j.name]}; "
                 "only revolute and continuous joints can be actuated"
+            )
+        limit = tree.joints[j.name].find("limit")
+        if movable[j.name] == "revolute" and (limit is None or limit.get("lower") is None or limit.get("upper") is None):
+            tree.warn(
+                f"joint '{j.name}' is revolute without <limit lower=… upper=…>: it is simulated unlimited and end poses "
+                "and initial states sample it over ±π; add the limits (or declare it continuous if it truly turns freely)"
             )
 
 
