@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -10,12 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from fallkit.config import DatasetConfig
 from fallkit.errors import PoseFileError
 from fallkit.poses import load_end_poses
 from fallkit.poses.dataset import default_dataset, load_dataset, save_dataset
 from fallkit.poses.generator import EndPoseGenerator
+from fallkit.sim import make_sim
 
 
 def fallkit_cli(*args: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -109,3 +112,28 @@ def test_a_gpu_asked_of_the_cpu_backend_is_refused(tmp_path):
         "fallkit: error: sim: device=cuda:0 needs the warp backend (the mujoco backend runs on the CPU): "
         "add sim=warp, or drop sim.device"
     ]
+
+
+# ---- item 4: MJCF files as they come from the wild ------------------------------------------------
+
+
+def test_an_mjcf_with_its_own_actuators_floor_sensors_and_keyframe_is_used(biped, tmp_path, caplog):
+    """A model from a public collection: its actuators, sensors, keyframe and floor are dropped with
+    one warning; the robot simulates with fallkit's 20 PD actuators and one floor."""
+    text = Path(biped.mjcf).read_text()
+    own = "".join(f'<motor joint="{j}" gear="1"/>' for j in biped.joint_names)
+    text = text.replace("<worldbody>", '<worldbody><geom name="ground" type="plane" size="5 5 0.1"/>', 1)
+    text = text.replace("</mujoco>", f'<actuator>{own}</actuator><sensor><jointpos joint="{biped.joint_names[0]}"/>'
+                                     f'</sensor><keyframe><key name="home" qpos="{" 0" * 27}"/></keyframe></mujoco>')  # fmt: skip
+    path = tmp_path / "wild.xml"
+    path.write_text(text)
+    wild = biped.model_copy(update={"name": "wild", "mjcf": path})
+    with caplog.at_level(logging.WARNING, logger="fallkit.robots.spec"):
+        model = wild.mj_model()
+    assert model.nu == biped.mj_model().nu == 20 and model.ngeom == biped.mj_model().ngeom and model.nkey == 0
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 1 and "20 <actuator>, 1 <sensor>, 1 <keyframe>, 1 floor): dropped" in warned[0]
+    sim = make_sim(wild, 2)
+    for _ in range(5):
+        state = sim.step(torch.as_tensor(biped.nominal_q(), dtype=torch.float32).expand(2, -1))
+    assert torch.isfinite(state.joint_pos).all()

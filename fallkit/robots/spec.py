@@ -9,11 +9,18 @@ each actuated joint in policy order, the named *components* with their
 a free joint on the root body, a floor, one position actuator (PD) per joint,
 and one net-contact-force sensor per component body.  Every backend and tool
 builds from this one scene, so they all simulate the same robot.
+
+MJCF files from public model collections bring their own scene: actuators,
+sensors, keyframes and a floor. fallkit drops them, with one warning per robot
+(its PD actuators come from the JointSpecs, its floor carries `friction`, and a
+second set would double the actuators or the ground contacts), and keeps the
+rest of the file (lights, materials, other geoms).
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 from functools import cached_property
 from pathlib import Path
 
@@ -22,6 +29,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fallkit.errors import RobotSpecError
+
+log = logging.getLogger(__name__)
+_WARNED: set[tuple[str, str]] = set()  # (robot, mjcf) whose dropped scene elements were reported
 
 
 class JointSpec(BaseModel):
@@ -151,6 +161,7 @@ class RobotSpec(BaseModel):
         except Exception as exc:  # MuJoCo's parser errors carry the line
             raise RobotSpecError(f"robot '{self.name}': mjcf: cannot load {self.mjcf}: {exc}") from exc
         spec.option.timestep = self.timestep
+        self._drop_own_scene(spec)
         root = spec.body(self.root_body)
         if root is None:
             raise RobotSpecError(f"robot '{self.name}': root_body: no body '{self.root_body}' in {self.mjcf}")
@@ -188,6 +199,25 @@ class RobotSpec(BaseModel):
                 sensor.objname = body
                 sensor.intprm[0:3] = [2, 3, 1]  # data="force", reduce="netforce", num=1
         return spec
+
+    def _drop_own_scene(self, spec: mujoco.MjSpec) -> None:
+        """Remove the file's actuators, sensors, keyframes and floor planes (see module docstring)."""
+        dropped = {
+            "<actuator>": list(spec.actuators),
+            "<sensor>": list(spec.sensors),
+            "<keyframe>": list(spec.keys),
+            "floor": [g for g in spec.worldbody.geoms if g.type == mujoco.mjtGeom.mjGEOM_PLANE],
+        }
+        for elements in dropped.values():
+            for e in elements:
+                spec.delete(e)
+        said = ", ".join(f"{len(v)} {k}" for k, v in dropped.items() if v)
+        if said and (self.name, str(self.mjcf)) not in _WARNED:
+            _WARNED.add((self.name, str(self.mjcf)))
+            log.warning(
+                "robot '%s': %s brings its own scene elements (%s): dropped; fallkit adds a PD actuator per "
+                "JointSpec, contact sensors per component and its own floor", self.name, self.mjcf, said,
+            )  # fmt: skip
 
     def mj_model(self) -> mujoco.MjModel:
         """The compiled scene: robot with floating base, floor, PD actuators, contact sensors.
