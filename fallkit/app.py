@@ -8,7 +8,10 @@ writes files into fallkit.
 
 from __future__ import annotations
 
+import contextlib
+import difflib
 import importlib
+import io
 import logging
 import re
 import sys
@@ -16,8 +19,13 @@ from pathlib import Path
 from typing import Any, Callable
 
 import hydra
+from hydra import compose, initialize_config_module
+from hydra._internal.utils import get_args_parser  # Hydra's own command line: the same parse as @hydra.main
 from hydra.core.config_store import ConfigStore
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException, MissingConfigException, OverrideParseException
 from omegaconf import DictConfig, OmegaConf
 
 from fallkit import registry
@@ -71,6 +79,99 @@ def check_robot_overrides(argv: list[str]) -> None:
                 fail(f"unknown robot '{name}'; registered robots: {', '.join(known) or 'none'}")
 
 
+# ---- Hydra's composition errors in fallkit's one-line form -------------------------------------------
+
+
+def check_overrides(argv: list[str]) -> None:
+    """Compose every job of the command line before Hydra starts, so that an unknown key, group
+    option or malformed override is one line naming the fix with exit 2 (Hydra prints several
+    lines and exits 1). Commands Hydra handles itself (--help, --info, other configs) are left to it."""
+    with contextlib.redirect_stderr(io.StringIO()):
+        try:
+            args = get_args_parser().parse_args(argv)
+        except SystemExit:
+            return  # Hydra reports its own usage errors
+    if args.help or args.hydra_help or args.info or args.shell_completion or args.experimental_rerun:
+        return
+    if args.config_name or args.config_path or args.config_dir:
+        return
+    for overrides in _jobs(args.overrides, args.multirun):
+        try:
+            _compose(overrides, hydra_config=True)
+        except HydraException as exc:
+            fail(describe_override_error(exc))
+        finally:
+            GlobalHydra.instance().clear()
+
+
+def _compose(overrides: list[str], hydra_config: bool = False) -> DictConfig:
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=overrides, return_hydra_config=hydra_config)
+
+
+def _jobs(overrides: list[str], multirun: bool) -> list[list[str]]:
+    """The override lists to check: each value of each sweep once, the other sweeps at their first value."""
+    if not multirun:
+        return [overrides]
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except OverrideParseException:
+        return [overrides]  # composing reports it
+    choices: list[list[str]] = []
+    for o in parsed:
+        if not o.is_sweep_override():
+            choices.append([o.input_line])
+            continue
+        try:
+            choices.append([f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()])
+        except HydraException:  # glob() sweeps need the config loader: left to Hydra
+            choices.append([])
+    base = [c[0] for c in choices if c]
+    jobs = [base]
+    for i, c in enumerate(choices):
+        for value in c[1:]:
+            jobs.append([value if j == i else x[0] for j, x in enumerate(choices) if x])
+    return jobs
+
+
+def describe_override_error(exc: HydraException) -> str:
+    """One line for a Hydra composition error: what is wrong and what to type instead."""
+    text = str(exc)
+    first = text.splitlines()[0] if text else type(exc).__name__
+    if isinstance(exc, MissingConfigException) and exc.options is not None and exc.missing_cfg_file:
+        group, _, name = exc.missing_cfg_file.rpartition("/")
+        return f"unknown {group} '{name}'; available: {', '.join(exc.options)} (choose with {group}=<name>)"
+    if isinstance(exc, OverrideParseException):
+        return f"cannot parse the override '{exc.override}': {first} (grammar: https://hydra.cc/docs/advanced/override_grammar/basic)"
+    if m := re.match(r"Could not override '([^']+)'", first):
+        return _unknown_key(m.group(1), re.search(r"use (\+\S+)", text))
+    if m := re.match(r"Could not delete from config\. '([^']+)' does not exist", first):
+        return f"~{m.group(1)}: there is no key {m.group(1)} to delete"
+    if m := re.match(r"Ambiguous value for argument '([^']+)'", first):
+        return (
+            f"{m.group(1)}: a comma-separated value is a sweep: add -m to run one job per value; "
+            "for a list write key=[a,b], for a string with commas quote it"
+        )
+    return first
+
+
+def _unknown_key(key: str, append: re.Match | None) -> str:
+    section, _, leaf = key.rpartition(".")
+    node = _compose([])
+    parent = OmegaConf.select(node, section) if section else node
+    siblings = [str(k) for k in parent.keys()] if isinstance(parent, DictConfig) else []
+    close = difflib.get_close_matches(leaf, siblings, n=1)
+    hint = f"did you mean {section + '.' if section else ''}{close[0]}? " if close else ""
+    added = append.group(1) if append else f"+{key}=…"
+    if section == "reward":
+        return (
+            f"{key}: no such reward term; {hint}{added} adds a term registered by a plugin "
+            "(python -m fallkit mode=list lists them)"
+        )
+    return f"{key}: no such key; {hint}python -m fallkit --cfg job prints every key"
+
+
 def run(cfg: DictConfig) -> Any:
     """The task: validate, save the resolved config, dispatch to the mode."""
     try:
@@ -97,6 +198,7 @@ def main() -> None:
     except PluginError as exc:  # e.g. a robot name registered twice
         fail(str(exc))
     check_robot_overrides(sys.argv[1:])
+    check_overrides(sys.argv[1:])
     _hydra_main()
 
 

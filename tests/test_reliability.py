@@ -137,3 +137,26 @@ def test_an_mjcf_with_its_own_actuators_floor_sensors_and_keyframe_is_used(biped
     for _ in range(5):
         state = sim.step(torch.as_tensor(biped.nominal_q(), dtype=torch.float32).expand(2, -1))
     assert torch.isfinite(state.joint_pos).all()
+
+
+# ---- item 8: Hydra's own errors in fallkit's one-line form ----------------------------------------
+
+
+@pytest.mark.parametrize(
+    "args, line",
+    [
+        (["reward.impcat=5"], "reward.impcat: no such reward term; did you mean reward.impact? +reward.impcat=5 adds "
+                              "a term registered by a plugin (python -m fallkit mode=list lists them)"),
+        (["sim=nosuch"], "unknown sim 'nosuch'; available: mujoco, warp (choose with sim=<name>)"),
+        (["train.iteratons=3"], "train.iteratons: no such key; did you mean train.iterations? "
+                                "python -m fallkit --cfg job prints every key"),
+        (["sim=mujoco,warp"], "sim=mujoco,warp: a comma-separated value is a sweep: add -m to run one job per value; "
+                              "for a list write key=[a,b], for a string with commas quote it"),
+        (["-m", "train=quick", "sim=mujoco,nosuch"], "unknown sim 'nosuch'; available: mujoco, warp (choose with sim=<name>)"),
+        (["seed=["], "cannot parse the override 'seed=[': no viable alternative at input '[' "
+                     "(grammar: https://hydra.cc/docs/advanced/override_grammar/basic)"),
+    ],
+)  # fmt: skip
+def test_hydra_composition_errors_are_one_line_exit_2(tmp_path, args, line):
+    r = fallkit_cli(*args, cwd=tmp_path)
+    assert (r.returncode, r.stderr.strip().splitlines()) == (2, [f"fallkit: error: {line}"])

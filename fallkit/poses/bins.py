@@ -4,7 +4,8 @@ Settled poses are binned by the direction of gravity in the root frame (an
 equal-area grid on the unit sphere, `OrientationBins`); `select_uniform` thins
 the over-full bins so the covered bins hold equally many poses (paper Sec. IV-C,
 step 5), `uniformity` measures how well that worked and `format_histogram`
-prints the bins as a table.
+prints the bins as a table; `pick_and_split` takes the kept poses of each bin and
+splits them into train and test, every bin proportionally represented in both.
 """
 
 from __future__ import annotations
@@ -126,3 +127,45 @@ def format_histogram(counts: list[int] | np.ndarray, bins: OrientationBins, rare
         cells = "".join(f"{grid[b, s]:>11d}{'*' if b * bins.sectors + s in rare else ' '}" for s in range(bins.sectors))
         rows.append(f"z {edges[b]:+.2f}..{edges[b + 1]:+.2f}" + cells)
     return "\n".join(rows)
+
+
+# ---- keeping and splitting ----------------------------------------------------------------------
+
+
+def pick_and_split(bins: np.ndarray, keep: np.ndarray, test: int, g: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Rows to keep and their split: keep[b] of each bin b, the train rows first, each split in random order."""
+    pick = _take_per_bin(bins, keep)  # the first poses of each bin, in drop order
+    split = _stratified_split(bins[pick], test, g)
+    order = torch.randperm(len(pick), generator=g).numpy()  # random order: any prefix is a random subset
+    order = np.concatenate([order[split[order] == "train"], order[split[order] == "test"]])
+    return pick[order], split[order]
+
+
+def _take_per_bin(bins: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Indices of the first keep[b] poses of every bin b (drop order), ascending."""
+    order = np.argsort(bins, kind="stable")
+    start = np.searchsorted(bins[order], np.arange(len(keep)))
+    rank = np.empty(len(bins), np.int64)
+    rank[order] = np.arange(len(bins)) - start[bins[order]]
+    return np.flatnonzero(rank < keep[bins])
+
+
+def _stratified_split(bins: np.ndarray, test: int, g: torch.Generator) -> np.ndarray:
+    """'train'/'test' per pose, with every bin's share of the test set proportional to its size."""
+    n = len(bins)
+    split = np.full(n, "train", dtype="<U5")
+    if test == 0:
+        return split
+    sizes = np.bincount(bins, minlength=int(bins.max()) + 1)
+    exact = sizes * test / n
+    quota = np.floor(exact).astype(np.int64)
+    extra = test - int(quota.sum())
+    quota[np.argsort(-(exact - quota), kind="stable")[:extra]] += 1  # largest remainders
+    shuffled = torch.randperm(n, generator=g).numpy()
+    taken = np.zeros_like(sizes)
+    for i in shuffled:
+        b = bins[i]
+        if taken[b] < quota[b]:
+            split[i] = "test"
+            taken[b] += 1
+    return split

@@ -38,7 +38,7 @@ from tqdm import tqdm
 from fallkit import __version__
 from fallkit.config import DatasetConfig
 from fallkit.errors import ConfigError
-from fallkit.poses.bins import OrientationBins, select_uniform, uniformity
+from fallkit.poses.bins import OrientationBins, pick_and_split, select_uniform, uniformity
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.dataset import PoseDataset
 from fallkit.poses.settle import CpuState, RestDetector
@@ -324,7 +324,7 @@ class EndPoseGenerator:
         joint_pos = torch.cat(tally.joints).double().clamp(lim[:, 0], lim[:, 1])
         height = torch.cat(tally.height).double()
         bins = torch.cat(tally.bins)
-        pick, split = _pick_and_split(bins.numpy(), keep, self.config.test, g)
+        pick, split = pick_and_split(bins.numpy(), keep, self.config.test, g)
         return GeneratedPoses(
             joint_pos=joint_pos[pick],
             root_quat=root_quat[pick],
@@ -333,49 +333,6 @@ class EndPoseGenerator:
             split=split,
             stats=stats,
         )
-
-
-# ---- keeping and splitting ----------------------------------------------------------------------
-
-
-def _pick_and_split(bins: np.ndarray, keep: np.ndarray, test: int, g: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Rows to keep and their split: keep[b] of each bin b, the train rows first, each split in random order."""
-    pick = _take_per_bin(bins, keep)  # the first poses of each bin, in drop order
-    split = _stratified_split(bins[pick], test, g)
-    order = torch.randperm(len(pick), generator=g).numpy()  # random order: any prefix is a random subset
-    order = np.concatenate([order[split[order] == "train"], order[split[order] == "test"]])
-    return pick[order], split[order]
-
-
-def _take_per_bin(bins: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Indices of the first keep[b] poses of every bin b (drop order), ascending."""
-    order = np.argsort(bins, kind="stable")
-    start = np.searchsorted(bins[order], np.arange(len(keep)))
-    rank = np.empty(len(bins), np.int64)
-    rank[order] = np.arange(len(bins)) - start[bins[order]]
-    return np.flatnonzero(rank < keep[bins])
-
-
-def _stratified_split(bins: np.ndarray, test: int, g: torch.Generator) -> np.ndarray:
-    """'train'/'test' per pose, with every bin's share of the test set proportional to its size."""
-    n = len(bins)
-    split = np.full(n, "train", dtype="<U5")
-    if test == 0:
-        return split
-    sizes = np.bincount(bins, minlength=int(bins.max()) + 1)
-    exact = sizes * test / n
-    quota = np.floor(exact).astype(np.int64)
-    extra = test - int(quota.sum())
-    quota[np.argsort(-(exact - quota), kind="stable")[:extra]] += 1  # largest remainders
-    shuffled = torch.randperm(n, generator=g).numpy()
-    taken = np.zeros_like(sizes)
-    for i in shuffled:
-        b = bins[i]
-        if taken[b] < quota[b]:
-            split[i] = "test"
-            taken[b] += 1
-    return split
-
 
 
 # ---- the dataset ------------------------------------------------------------------------------

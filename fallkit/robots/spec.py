@@ -23,6 +23,7 @@ import hashlib
 import logging
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -225,6 +226,15 @@ class RobotSpec(BaseModel):
         Compiled once per spec; callers that edit the model take a copy first.
         """
         return self._compiled_model
+
+    def model_copy(self, *, update: dict[str, Any] | None = None, deep: bool = False) -> "RobotSpec":
+        """A copy with `update`; the compiled model is not carried over (pydantic copies the
+        instance dict, cached properties included: a new `mjcf` would keep the old model)."""
+        copy = super().model_copy(update=update, deep=deep)
+        if update:
+            for cached in ("_compiled_model", "_joint_limits"):
+                copy.__dict__.pop(cached, None)
+        return copy
 
     @cached_property
     def _compiled_model(self) -> mujoco.MjModel:
