@@ -177,6 +177,9 @@ def run(cfg: DictConfig) -> Any:
     try:
         raw = OmegaConf.to_container(cfg, resolve=True)
         config = validate(raw)
+        if config.resume and config.mode == "train":
+            config = _resume(config, raw)
+            raw = {**raw, **config.model_dump(mode="json")}
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "resolved_config.yaml").write_text(OmegaConf.to_yaml(raw))
@@ -185,6 +188,35 @@ def run(cfg: DictConfig) -> Any:
         return handler(config, run_dir)
     except FallkitError as exc:
         fail(str(exc))
+
+
+def _resume(config: FallkitConfig, raw: dict[str, Any]) -> FallkitConfig:
+    """The run's own configuration with the command line's keys on top (fallkit.rl.resume)."""
+    from fallkit.rl.resume import resume_config
+
+    resumed = resume_config(config, _set_by_command_line(raw))
+    if resumed.changed:
+        print(f"resume: the command line changes the run's {'; '.join(resumed.changed)}")
+    return resumed.config
+
+
+def _set_by_command_line(raw: dict[str, Any]) -> set[str]:
+    """Keys the command line set: those named in key=value overrides, and every key a group
+    choice (train=quick, sim=warp) or override moved away from the defaults."""
+    from fallkit.rl.resume import leaves
+
+    hc = HydraConfig.get()
+    groups = set(hc.runtime.choices)
+    task = OverridesParser.create().parse_overrides(list(hc.overrides.task))
+    named = {o.key_or_group for o in task if o.key_or_group not in groups}
+    try:
+        default = OmegaConf.to_container(compose(config_name="config", overrides=[]), resolve=True)
+    except HydraException:  # a launcher's worker without Hydra's config loader: the groups as a whole
+        return named | {o.key_or_group for o in task if o.key_or_group in groups}
+    default.pop("hydra", None)
+    now = leaves(validate({k: v for k, v in raw.items() if k != "hydra"}).model_dump(mode="json"))
+    before = leaves(validate(default).model_dump(mode="json"))
+    return named | {k for k, v in now.items() if before.get(k) != v}
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")

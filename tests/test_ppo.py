@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from fallkit.config import PPOConfig
-from fallkit.rl.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, save_checkpoint
+from fallkit.rl.checkpoint import CheckpointError, load_checkpoint, run_checkpoints, save_checkpoint
 from fallkit.rl.models import RunningNorm
 from fallkit.rl.ppo import adapt_learning_rate, gaussian_kl
 
@@ -44,10 +44,26 @@ def test_running_norm_matches_whole_batch_statistics_and_updates_in_place():
 
 def test_checkpoint_roundtrip_and_run_dir(tmp_path):
     path = save_checkpoint(tmp_path / "checkpoints" / "last.pt", {"iteration": 7, "w": torch.arange(3)})
-    assert resolve_checkpoint(tmp_path) == path
+    assert run_checkpoints(tmp_path) == [path]
     data = load_checkpoint(tmp_path)
-    assert data["iteration"] == 7 and data["w"].tolist() == [0, 1, 2]
+    assert data["iteration"] == 7 and data["w"].tolist() == [0, 1, 2] and data["path"] == str(path)
     assert not list((tmp_path / "checkpoints").glob("*.tmp"))  # nothing left behind
+
+
+def test_a_killed_run_resumes_from_its_newest_intact_checkpoint(tmp_path, caplog):
+    """kill -9 leaves no last.pt, only iter_*.pt, and at worst a damaged newest one."""
+    run = tmp_path / "run"
+    for it in (10, 20, 30):
+        save_checkpoint(run / "checkpoints" / f"iter_{it:06d}.pt", {"iteration": it})
+    assert load_checkpoint(run)["iteration"] == 30
+    newest = run / "checkpoints" / "iter_000030.pt"
+    newest.write_bytes(newest.read_bytes()[:40])
+    with caplog.at_level("WARNING", logger="fallkit.rl.checkpoint"):
+        assert load_checkpoint(run)["iteration"] == 20
+    assert "skipped a damaged checkpoint: checkpoint " in caplog.text and "iter_000030.pt" in caplog.text
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match=r"no checkpoint in .*empty/checkpoints: the run stopped before"):
+        load_checkpoint(tmp_path / "empty")
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])

@@ -6,6 +6,7 @@ import logging
 import os
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -160,3 +161,49 @@ def test_an_mjcf_with_its_own_actuators_floor_sensors_and_keyframe_is_used(biped
 def test_hydra_composition_errors_are_one_line_exit_2(tmp_path, args, line):
     r = fallkit_cli(*args, cwd=tmp_path)
     assert (r.returncode, r.stderr.strip().splitlines()) == (2, [f"fallkit: error: {line}"])
+
+
+# ---- item 6: resume after a crash -------------------------------------------------------------------
+
+TINY = ["train=quick", "sim.num_envs=8", "sim.threads=1", "train.num_steps=4", "train.actor_hidden=[16,16]",
+        "train.critic_hidden=[16,16]", "train.ppo.num_minibatches=2", "train.ppo.epochs=2", "train.evaluate=false",
+        "env.episode_length=0.2", "reward.blend_time=0.1"]  # fmt: skip
+
+
+def test_a_run_killed_with_sigkill_resumes_with_its_own_configuration(tmp_path):
+    """kill -9 leaves iter_*.pt only, and metrics rows past the newest of them. `resume=<run dir>`
+    without repeating the run's overrides takes the newest checkpoint and the run's configuration,
+    names what the command line changes, and keeps every iteration once in metrics.csv."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "fallkit", *TINY, "train.iterations=100000",
+                             "train.checkpoint_every=2", "hydra.run.dir=run"], cwd=tmp_path, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    csv_path = tmp_path / "run" / "metrics.csv"
+    try:
+        deadline = time.time() + 180
+        while time.time() < deadline and not (csv_path.exists() and csv_path.read_text().count("\n") >= 6):
+            time.sleep(0.2)
+    finally:
+        proc.kill()
+        proc.wait()
+    ckpts = sorted((tmp_path / "run" / "checkpoints").glob("iter_*.pt"))
+    assert ckpts and not (tmp_path / "run" / "checkpoints" / "last.pt").exists()
+    newest = int(ckpts[-1].stem.split("_")[1])
+    target = newest + 2
+
+    r = fallkit_cli("resume=run", f"train.iterations={target}", "hydra.run.dir=run", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"resumed from run/checkpoints/{ckpts[-1].name} at iteration {newest}; training to {target}" in r.stdout
+    assert f"the command line changes the run's train.iterations: 100000 -> {target}" in r.stdout
+    iterations = [int(line.split(",")[0]) for line in csv_path.read_text().splitlines()[1:]]
+    assert iterations == list(range(1, target + 1))
+
+    r = fallkit_cli("resume=run", "robot=go1", cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "fallkit: error: resume: run/checkpoints/last.pt was trained on robot 'biped20', "
+        "but this run asks for robot 'go1': drop robot= to continue that run, or drop resume= to start a new one"
+    ]
+    r = fallkit_cli("resume=run", "train.actor_hidden=[8]", cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "resume: the actor network of run/checkpoints/last.pt differs from this run's: " in r.stderr
+    assert "is [16] there and [8] here; the run had train.actor_hidden=[16, 16]: drop the override" in r.stderr

@@ -3,10 +3,15 @@
 A checkpoint is written to a temporary file in the same directory, flushed to
 disk, then renamed over the target, so a run killed at any moment leaves either
 the previous checkpoint or the new one — never half of one.
+
+A run directory stands for its newest intact checkpoint: `last.pt` is written
+when a run ends, so a run killed with `kill -9` has only `iter_*.pt`; the newest
+of all of them that loads is taken (damaged ones are skipped, each with a warning).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import pickle
 import tempfile
@@ -20,7 +25,7 @@ from fallkit.errors import CheckpointError
 
 FORMAT_VERSION = 1
 
-
+log = logging.getLogger(__name__)
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
@@ -40,18 +45,35 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     return path
 
 
-def resolve_checkpoint(where: str | Path) -> Path:
-    """A checkpoint file, or a run directory whose checkpoints/last.pt is taken."""
-    p = Path(where).expanduser()
-    if p.is_dir():
-        p = p / "checkpoints" / "last.pt"
-    if not p.is_file():
-        raise CheckpointError(f"checkpoint not found: {p}")
-    return p
+def run_checkpoints(run_dir: Path) -> list[Path]:
+    """A run's checkpoint files, newest first (by the time they were written)."""
+    files = [*run_dir.glob("checkpoints/iter_*.pt"), *run_dir.glob("checkpoints/last.pt")]
+    return sorted(files, key=lambda f: (f.stat().st_mtime_ns, f.name), reverse=True)
 
 
 def load_checkpoint(where: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    path = resolve_checkpoint(where)
+    """A checkpoint file, or the newest intact checkpoint of a run directory."""
+    p = Path(where).expanduser()
+    if not p.is_dir():
+        if not p.is_file():
+            raise CheckpointError(f"checkpoint not found: {p}")
+        return _load(p, map_location)
+    found = run_checkpoints(p)
+    if not found:
+        raise CheckpointError(
+            f"no checkpoint in {p}/checkpoints: the run stopped before its first one (train.checkpoint_every)"
+        )
+    for i, path in enumerate(found):
+        try:
+            return _load(path, map_location)
+        except CheckpointError as exc:
+            if i == len(found) - 1:
+                raise
+            log.warning("skipped a damaged checkpoint: %s", exc)
+    raise AssertionError("unreachable")
+
+
+def _load(path: Path, map_location: str | torch.device) -> dict[str, Any]:
     try:
         data = torch.load(path, map_location=map_location, weights_only=False)
     except (EOFError, RuntimeError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as exc:
@@ -67,6 +89,12 @@ def load_checkpoint(where: str | Path, map_location: str | torch.device = "cpu")
         )
     data["path"] = str(path)
     return data
+
+
+def checkpoint_run_dir(path: str | Path) -> Path | None:
+    """The run directory a checkpoint file belongs to (<run>/checkpoints/<file>), if it is in one."""
+    path = Path(path)
+    return path.parent.parent if path.parent.name == "checkpoints" else None
 
 
 def _umask() -> int:

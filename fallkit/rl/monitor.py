@@ -73,14 +73,20 @@ class Progress:
 class MetricsLog:
     """TensorBoard scalars and a CSV of the same figures, one row per iteration (main rank only)."""
 
-    def __init__(self, run_dir: Path, enabled: bool):
+    def __init__(self, run_dir: Path, enabled: bool, start: int = 0, resumed_from: Path | None = None):
+        """A resumed run (`start` > 0) keeps the rows up to `start` of the run it continues
+        (`resumed_from`, possibly this same directory) and drops the later ones: those
+        iterations are trained again, and a curve must not hold them twice."""
         self.enabled = enabled
         if not enabled:
             return
         from torch.utils.tensorboard import SummaryWriter  # imports TensorBoard: only where logging happens
 
-        self.tb = SummaryWriter(str(run_dir / "tensorboard"))
+        # purge_step hides the events at and after it that a killed run had already written
+        self.tb = SummaryWriter(str(run_dir / "tensorboard"), purge_step=start + 1 if start else None)
         self.csv_path = run_dir / "metrics.csv"
+        if start:
+            _keep_rows_up_to(self.csv_path, start, (resumed_from or run_dir) / "metrics.csv")
         self._file = None
         self._writer = None
         self._fields: list[str] | None = None
@@ -92,9 +98,13 @@ class MetricsLog:
             self.tb.add_scalar(k, v, it)
         row = {"iteration": it, **stats}
         if self._writer is None:
-            new = not self.csv_path.exists()
+            new = not self.csv_path.exists() or self.csv_path.stat().st_size == 0
+            header: list[str] = []
+            if not new:
+                with open(self.csv_path, newline="") as f:
+                    header = next(csv.reader(f), [])
             self._file = open(self.csv_path, "a", newline="")
-            self._fields = list(row)
+            self._fields = header or list(row)  # a continued file keeps its columns
             self._writer = csv.DictWriter(self._file, fieldnames=self._fields, extrasaction="ignore")
             if new:
                 self._writer.writeheader()
@@ -106,3 +116,19 @@ class MetricsLog:
             self.tb.close()
             if self._file:
                 self._file.close()
+
+
+def _keep_rows_up_to(path: Path, iteration: int, source: Path) -> None:
+    """Write to `path` the header and the rows of `source` with iteration <= `iteration`
+    (`source` may be `path` itself: then it is truncated in place, atomically)."""
+    if not source.is_file():
+        return
+    with open(source, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return
+    kept = [rows[0]] + [r for r in rows[1:] if r and r[0].isdigit() and int(r[0]) <= iteration]
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        csv.writer(f).writerows(kept)
+    tmp.replace(path)

@@ -32,7 +32,7 @@ from fallkit.config import FallkitConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.errors import CheckpointError, ConfigError
-from fallkit.rl.checkpoint import load_checkpoint, save_checkpoint
+from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, distributed
@@ -69,11 +69,14 @@ class Trainer:
         self.td: TensorDict | None = None  # the next collection's input
         self.impacts = EpisodeImpacts(self.env)
         self.stopped: str | None = None  # the signal that stopped the run, if one did
+        self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
         if config.resume:
             ckpt = load_checkpoint(config.resume, map_location=self.env.device)
             self.load_state_dict(ckpt)
             self.start = self.iteration
-            log.info("resumed from %s at iteration %d", ckpt["path"], self.iteration)
+            self.resumed_from = checkpoint_run_dir(ckpt["path"])
+            if self.main_rank:
+                print(f"resumed from {ckpt['path']} at iteration {self.iteration}; training to {tc.iterations}")
 
     @property
     def main_rank(self) -> bool:
@@ -84,7 +87,7 @@ class Trainer:
         tc = self.config.train
         if self.td is None:
             self.td = self._first_observation()
-        metrics, stop = MetricsLog(self.run_dir, self.main_rank), StopFlag()
+        metrics, stop = MetricsLog(self.run_dir, self.main_rank, self.start, self.resumed_from), StopFlag()
         progress = Progress(tc.iterations, self.iteration, tc.max_minutes, self.main_rank)
         try:
             while self.iteration < tc.iterations:
@@ -166,14 +169,14 @@ class Trainer:
                 f"checkpoint {path} was trained on robot '{ckpt['robot']}' (model {ckpt['model_hash']}); "
                 f"this run is '{self.spec.name}' (model {self.spec.model_hash()})"
             )
-        try:
-            self.actor.load_state_dict(ckpt["actor"])
-            self.critic.load_state_dict(ckpt["critic"])
-        except RuntimeError as exc:
-            raise ConfigError(
-                f"resume: network sizes differ from checkpoint {path} "
-                f"(train.actor_hidden / train.critic_hidden): {str(exc).splitlines()[0]}"
-            ) from None
+        for name, net in (("actor", self.actor), ("critic", self.critic)):
+            differ = _shape_mismatch(net.state_dict(), ckpt[name])
+            if differ:
+                raise ConfigError(
+                    f"resume: the {name} network of {path} differs from this run's: {differ}; "
+                    f"the run had train.{name}_hidden={ckpt['config']['train'][f'{name}_hidden']}: drop the override"
+                )
+            net.load_state_dict(ckpt[name])
         self.ppo.load_state_dict(ckpt["ppo"])
         try:
             self.env.load_run_state(ckpt["env"])
@@ -279,3 +282,14 @@ def _init_distributed(config: FallkitConfig) -> int:
     backend = "nccl" if config.sim.device.startswith("cuda") and torch.cuda.is_available() else "gloo"
     dist.init_process_group(backend=backend)
     return dist.get_rank()
+
+
+def _shape_mismatch(here: dict[str, torch.Tensor], there: dict[str, torch.Tensor]) -> str:
+    """The first parameter whose presence or shape differs, in words ('' when they all match)."""
+    for key in sorted(here.keys() | there.keys()):
+        a, b = here.get(key), there.get(key)
+        if a is None or b is None:
+            return f"'{key}' exists only {'in the checkpoint' if a is None else 'in this run'}"
+        if a.shape != b.shape:
+            return f"'{key}' is {list(b.shape)} there and {list(a.shape)} here"
+    return ""
