@@ -31,6 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from fallkit import registry
 from fallkit.config import FallkitConfig, defaults, validate
 from fallkit.errors import FallkitError, PluginError
+from fallkit.machine import running
 from fallkit.robots import GROUP as ROBOTS
 from fallkit.robots import get_robot
 
@@ -46,6 +47,10 @@ MODES: dict[str, str] = {
     "render": "fallkit.eval.render:run_render",
     "poses": "fallkit.eval.dataset_report:run_poses",
 }
+
+
+# modes that fill the cores: they register, and size their thread pools to their share (fallkit.machine)
+CPU_HEAVY = ("train", "eval", "poses", "render")
 
 
 def fail(message: str) -> None:
@@ -185,7 +190,8 @@ def run(cfg: DictConfig) -> Any:
         (run_dir / "resolved_config.yaml").write_text(OmegaConf.to_yaml(raw))
         module, func = MODES[config.mode].split(":")
         handler: Callable[[FallkitConfig, Path], Any] = getattr(importlib.import_module(module), func)
-        return handler(config, run_dir)
+        with running() if config.mode in CPU_HEAVY else contextlib.nullcontext():  # share the cores
+            return handler(config, run_dir)
     except FallkitError as exc:
         fail(str(exc))
 

@@ -207,3 +207,30 @@ def test_a_run_killed_with_sigkill_resumes_with_its_own_configuration(tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "resume: the actor network of run/checkpoints/last.pt differs from this run's: " in r.stderr
     assert "is [16] there and [8] here; the run had train.actor_hidden=[16, 16]: drop the override" in r.stderr
+
+
+# ---- item 9: parallel runs share the cores ----------------------------------------------------------
+
+
+def test_fallkit_processes_share_the_cores(tmp_path, monkeypatch):
+    """Each CPU-heavy fallkit process registers; the share is the usable cores over those alive,
+    and a killed process's entry is ignored and removed (it cannot hold cores forever)."""
+    from fallkit import machine
+
+    monkeypatch.setenv("FALLKIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(machine, "usable_cores", lambda: 8)
+    assert machine.running_processes() == 0 and machine.core_share() == 8
+    with machine.running():
+        assert machine.running_processes() == 1 and machine.core_share() == 8
+        other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+        try:
+            entry = tmp_path / "running" / f"{other.pid}.pid"
+            entry.write_text(machine._start_time(other.pid))
+            assert machine.running_processes() == 2 and machine.core_share() == 4
+            (tmp_path / "running" / "999999999.pid").write_text("0")  # a pid that cannot exist
+            assert machine.running_processes() == 2
+        finally:
+            other.kill()
+            other.wait()
+        assert machine.running_processes() == 1 and not entry.exists()
+    assert machine.running_processes() == 0

@@ -14,7 +14,7 @@ class SimConfig(Section):
 
     backend: Literal["mujoco", "warp"] = "mujoco"
     num_envs: int = Field(256, gt=0, description="parallel worlds")
-    threads: int = Field(0, ge=0, description="mujoco backend: CPU threads, 0 = all cores")
+    threads: int = Field(0, ge=0, description="mujoco backend: CPU threads, 0 = this process's share of the cores (fallkit.machine)")
     device: str = Field("cpu", description="warp backend: auto | cpu | cuda:N")
     nconmax: int | None = Field(None, gt=0, description="warp backend: contacts per world, pooled over worlds (None = from the robot)")
     njmax: int | None = Field(None, gt=0, description="warp backend: constraint rows per world (None = from the robot)")

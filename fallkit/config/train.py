@@ -63,5 +63,5 @@ class TrainConfig(Section):
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")
     torch_threads: int = Field(
-        0, ge=0, description="torch CPU threads of the PPO update (0 = all cores); collection uses one beside MuJoCo's"
+        0, ge=0, description="torch CPU threads of the PPO update (0 = this process's share of the cores, fallkit.machine); collection uses one beside MuJoCo's"
     )

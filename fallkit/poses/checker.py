@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from fallkit.errors import RobotSpecError
+from fallkit.machine import core_share
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import Layout
 
@@ -27,7 +28,7 @@ class PoseChecker:
         self.model = spec.mj_model()
         self.layout = Layout(spec)
         self.chunk = chunk
-        self.batch = mujoco.batch.Batch(self.model, chunk, nthread=threads)
+        self.batch = mujoco.batch.Batch(self.model, chunk, nthread=threads or core_share())
         self._qpos = self.batch.bind("qpos")
         self._ncon = self.batch.bind("ncon")
         self._gpos = self.batch.bind("geom_xpos")

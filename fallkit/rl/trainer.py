@@ -32,6 +32,7 @@ from fallkit.config import FallkitConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.errors import CheckpointError, ConfigError
+from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
@@ -48,8 +49,9 @@ class Trainer:
         tc = config.train
         self.config, self.run_dir = config, Path(run_dir)
         self.rank = _init_distributed(config)
-        # MuJoCo's threads own the cores while collecting; the update has them to itself
-        self.collect_threads, self.update_threads = 1, tc.torch_threads or os.cpu_count() or 1
+        # MuJoCo's threads own the cores while collecting; the update has this process's share
+        # of them to itself (fallkit.machine: asked again every iteration)
+        self.collect_threads, self.update_threads = 1, tc.torch_threads or core_share()
         torch.set_num_threads(self.collect_threads)
         seed = config.seed + 1_000_003 * self.rank
         torch.manual_seed(seed)
@@ -121,11 +123,21 @@ class Trainer:
 
     def learn(self, batch: TensorDict) -> dict[str, float]:
         """The PPO update on all cores, then the batch into the running observation statistics."""
+        self._share_cores()
         torch.set_num_threads(self.update_threads)
         stats = self.ppo.update(batch, generator=self.shuffle)
         _update_normalizers(self.actor, self.critic, batch)
         torch.set_num_threads(self.collect_threads)
         return stats
+
+    def _share_cores(self) -> None:
+        """The update's torch threads: train.torch_threads, or this process's share of the cores now."""
+        if self.config.train.torch_threads:
+            return
+        share = core_share()
+        if share != self.update_threads:
+            log.info("cores: %d fallkit processes running; the update now uses %d threads", running_processes(), share)
+            self.update_threads = share
 
     def diagnostics(self, batch: TensorDict, collect_s: float, update_s: float) -> dict[str, float]:
         """Speed, reward, each reward term, stability and the finished episodes' impacts."""

@@ -9,7 +9,6 @@ MJCF is written with its meshes into a content-addressed folder.
 from __future__ import annotations
 
 import hashlib
-import os
 import shutil
 import tempfile
 import xml.etree.ElementTree as ET
@@ -19,6 +18,7 @@ from pathlib import Path
 import mujoco
 
 from fallkit.errors import URDFError
+from fallkit.machine import cache_root
 from fallkit.robots.urdf_tree import UrdfTree, choose_root, prepare
 
 _FORMAT = 1  # bump when the conversion changes, so cached folders are not reused
@@ -86,7 +86,7 @@ def _fuse_static(spec: mujoco.MjSpec, path: Path, root: str, keep: list[str]) ->
 
 def _write(spec: mujoco.MjSpec, path: Path, name: str, notes: list[str], cache_dir: str | Path | None) -> Path:
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
-    parent = _cache_root(cache_dir) / "urdf"
+    parent = cache_root(cache_dir) / "urdf"
     # Everything goes into a temporary folder renamed at the end: concurrent imports
     # never see half a model. Meshes are copied first: to_xml compiles, relative paths.
     try:
@@ -127,14 +127,6 @@ def _write(spec: mujoco.MjSpec, path: Path, name: str, notes: list[str], cache_d
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return target
-
-
-def _cache_root(cache_dir: str | Path | None) -> Path:
-    if cache_dir is not None:
-        return Path(cache_dir)
-    if os.environ.get("FALLKIT_CACHE_DIR"):
-        return Path(os.environ["FALLKIT_CACHE_DIR"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fallkit"
 
 
 def one_line(exc: Exception) -> str:

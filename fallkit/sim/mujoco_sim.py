@@ -15,6 +15,7 @@ import mujoco.batch
 import numpy as np
 import torch
 
+from fallkit.machine import core_share
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import Layout, SimState
 
@@ -43,7 +44,8 @@ class MujocoSim:
         self.num_unstable = 0
         self.model = spec.mj_model()
         self.layout = Layout(spec)
-        self.batch = mujoco.batch.Batch(self.model, num_worlds, nthread=threads)
+        # threads=0: this process's share of the cores (fallkit.machine), not every core
+        self.batch = mujoco.batch.Batch(self.model, num_worlds, nthread=threads or core_share())
 
         b = self.batch
         self._qpos, self._qvel, self._ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
