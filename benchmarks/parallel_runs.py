@@ -1,8 +1,9 @@
 """Two trainings on one machine: does each get its share of the cores? (issue 19, item 9)
 
 Runs one `train=quick` training alone, then `--jobs` of them side by side (same overrides,
-seeds 0, 1, …), each for `--seconds`, and compares iterations per minute. An iteration's
-time is the trainer's own collect_s + update_s from metrics.csv, skipping the first
+seeds 0, 1, …), each for `--seconds`, and compares iterations per minute: 60 s over the
+median iteration time, an iteration's time being the trainer's own collect_s + update_s
+from metrics.csv, skipping the first
 `--skip` iterations (start-up, first-touch allocations), so process start-up and the final
 evaluation do not count. On a machine with C cores, N jobs side by side can each reach at
 most 1/N of one job alone (when one job already uses every core):
@@ -10,7 +11,12 @@ most 1/N of one job alone (when one job already uses every core):
   min_share   the slowest side-by-side job's iterations/min over the lone job's
               (target >= 0.45 for two jobs: each gets its half, minus little)
 
-    python benchmarks/parallel_runs.py [--seconds 120] [--jobs 2] [-- key=value …]
+    python benchmarks/parallel_runs.py [--seconds 120] [--jobs 2] [--stagger S] [-- key=value …]
+
+`--stagger S` starts each later run S seconds after the previous one: the first has then
+sized its pools while alone and must give cores back. The runs then overlap only partly,
+which is why the rate is taken from the median iteration time: keep the stagger under half
+of `--seconds`, so that most iterations of every run ran side by side.
 
 Overrides after `--` go to every training (e.g. `-- sim.threads=1`). The last line is one
 JSON object. Nothing else may run on the machine meanwhile.
@@ -26,6 +32,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 
@@ -46,7 +53,7 @@ def rate(run_dir: Path, skip: int) -> dict:
     seconds = [float(r["collect_s"]) + float(r["update_s"]) for r in rows]
     return {
         "iterations": len(rows),
-        "it_per_min": 60.0 * len(rows) / sum(seconds),
+        "it_per_min": 60.0 / statistics.median(seconds),
         "median_collect_s": statistics.median(float(r["collect_s"]) for r in rows),
         "median_update_s": statistics.median(float(r["update_s"]) for r in rows),
     }
@@ -56,7 +63,11 @@ def run_together(n: int, args: argparse.Namespace, root: Path, name: str) -> lis
     dirs = [root / f"{name}{i}" for i in range(n)]
     for d in dirs:
         d.mkdir(parents=True)
-    procs = [start(d, i, args) for i, d in enumerate(dirs)]
+    procs = []
+    for i, d in enumerate(dirs):
+        if i and args.stagger:
+            time.sleep(args.stagger)  # the first run has started alone and sized its pools to every core
+        procs.append(start(d, i, args))
     for p, d in zip(procs, dirs):
         if p.wait() != 0:
             raise SystemExit(f"training failed, see {d.parent / (d.name + '.log')}")
@@ -67,6 +78,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=120.0, help="training time of each run")
     ap.add_argument("--jobs", type=int, default=2, help="runs side by side")
+    ap.add_argument("--stagger", type=float, default=0.0, help="start each later run this many seconds after the previous")
     ap.add_argument("--skip", type=int, default=3, help="first iterations left out")
     ap.add_argument("--out", type=Path, default=None, help="keep the runs here (default: a temporary folder)")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides for every run (after --)")
@@ -80,7 +92,7 @@ def main() -> None:
         print(f"side by side #{i}: {t['it_per_min']:.1f} it/min = {s:.2f} of alone")
     print(json.dumps({
         "benchmark": "parallel_runs", "jobs": args.jobs, "cores": os.cpu_count(), "seconds": args.seconds,
-        "overrides": args.overrides, "alone": alone, "together": together, "shares": shares,
+        "stagger_s": args.stagger, "overrides": args.overrides, "alone": alone, "together": together, "shares": shares,
         "min_share": min(shares), "target_min_share": round(0.9 / args.jobs, 3),
     }))  # fmt: skip
 
