@@ -44,6 +44,10 @@ class RenderError(FallkitError, RuntimeError):
     """Offscreen rendering is unavailable (no OpenGL backend) or failed."""
 
 
+class DeployError(FallkitError, ValueError):
+    """An input of the deploy controller (export folder, state, end pose) that cannot be used."""
+
+
 class SimBufferError(FallkitError, RuntimeError):
     """mujoco_warp's preallocated contact or constraint buffer overflowed; names the sim.* key to raise."""
 

@@ -6,6 +6,10 @@ Writes into the run directory:
   policy.json   joint order, nominal pose, action scale (setpoint = nominal +
                 action_scale · action), PD gains and torque limits, rates, and the
                 layout of the observation vector
+  end_poses.json  the robot's shipped artist poses, settled as training's are:
+                name -> joints by name [rad] and root_quat (w, x, y, z); only for robots
+                that ship artist poses
+`fallkit.deploy.FallController.load(<run dir>)` runs them on a robot (docs/deploy.md).
 The export is checked: onnxruntime must reproduce the torch policy's actions.
 """
 
@@ -50,7 +54,10 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         "joint_names": spec.joint_names,
         "nominal_pose": dict(zip(spec.joint_names, spec.nominal_q().tolist())),
         "action_scale": tcfg.env.action_scale,
-        "setpoint": "nominal_pose + action_scale * action, clipped to the joint limits",
+        "setpoint": "nominal_pose + action_scale * action"
+        + (", clipped to the joint limits" if tcfg.env.clip_setpoints else ""),
+        "clip_setpoints": tcfg.env.clip_setpoints,
+        "base_body": spec.root_body,
         "joint_limits": dict(zip(spec.joint_names, spec.joint_limits.tolist())),
         "pd_gains": {j.name: {"kp": j.kp, "kd": j.kd, "torque_limit": j.torque_limit} for j in spec.joints},
         "observation_size": obs_dim,
@@ -63,8 +70,26 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         },
     }
     (run_dir / "policy.json").write_text(json.dumps(meta, indent=2))
-    print(f"exported {onnx_path} and {run_dir / 'policy.json'} (iteration {policy.iteration} of {policy.path})")
+    poses = _write_end_poses(spec, run_dir / "end_poses.json")
+    print(f"exported {onnx_path} and {run_dir / 'policy.json'} (iteration {policy.iteration} of {policy.path})"
+          + (f", {poses} end poses in {run_dir / 'end_poses.json'}" if poses else ""))  # fmt: skip
     return onnx_path
+
+
+def _write_end_poses(spec, path: Path) -> int:
+    """The robot's shipped artist poses, settled (what env.poses=artist trains and evaluates toward)."""
+    from fallkit.poses.artist import read_artist_poses, settle_artist_poses, shipped_artist_file
+
+    source = shipped_artist_file(spec)
+    if source is None:
+        return 0
+    settled, _ = settle_artist_poses(source, spec, read_artist_poses(source, spec))
+    poses = {
+        name: {"joints": dict(zip(spec.joint_names, q.tolist())), "root_quat": quat.tolist()}
+        for name, q, quat in zip(settled.names, settled.joint_pos.double(), settled.root_quat.double())
+    }
+    path.write_text(json.dumps(poses, indent=2))
+    return len(poses)
 
 
 def _check_onnx(path: Path, net: torch.nn.Module, obs_dim: int) -> None:
