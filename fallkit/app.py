@@ -46,11 +46,12 @@ MODES: dict[str, str] = {
     "eval": "fallkit.eval.evaluate:run_eval",
     "render": "fallkit.eval.render:run_render",
     "poses": "fallkit.eval.dataset_report:run_poses",
+    "sim2sim": "fallkit.deploy.sim2sim:run_sim2sim",
 }
 
 
 # modes that fill the cores: they register, and size their thread pools to their share (fallkit.machine)
-CPU_HEAVY = ("train", "eval", "poses", "render")
+CPU_HEAVY = ("train", "eval", "poses", "render", "sim2sim")
 
 
 def fail(message: str) -> None:

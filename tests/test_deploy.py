@@ -126,8 +126,13 @@ def test_controller_equals_env_and_policy_over_full_falls_go1(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def biped_export(tmp_path_factory):
-    return exported(tmp_path_factory.mktemp("deploy"), "robot=biped20")[1]
+def biped_run(tmp_path_factory):
+    return exported(tmp_path_factory.mktemp("deploy"), "robot=biped20")
+
+
+@pytest.fixture(scope="module")
+def biped_export(biped_run):
+    return biped_run[1]
 
 
 def _state(c: FallController, **change) -> RobotState:
@@ -200,3 +205,15 @@ def test_deploy_imports_neither_torch_nor_mujoco():
             "if m in sys.modules]; print(heavy); sys.exit(bool(heavy))")  # fmt: skip
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_mode_sim2sim_agrees_with_mode_eval(biped_run, tmp_path):
+    """The exported controller in a plain MuJoCo loop (its own PD, one MjData) against the batch
+    evaluation of the same falls: every metric's paired mean difference within its 95 % interval."""
+    r = subprocess.run([sys.executable, "-m", "fallkit", "mode=sim2sim", f"checkpoint={biped_run[0]}", "eval.trials=24",
+                        f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    report = json.loads((tmp_path / "sim2sim.json").read_text())
+    assert set(report["metrics"]) >= {"max_impact_force", "fall_mean_impact_force", "mroe", "mje"}
+    assert report["all_agree"], (tmp_path / "sim2sim.md").read_text()
+    assert "All metrics agree within sampling noise." in r.stdout
