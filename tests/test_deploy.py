@@ -200,6 +200,35 @@ def test_missing_estimate_holds_or_damps_and_step_reuses_its_arrays(biped_export
     assert damp.step(_state(damp)).kp.min() > 0  # the gains come back with the estimate
 
 
+def test_a_missing_or_foreign_export_is_named(biped_export, tmp_path):
+    with pytest.raises(DeployError, match=r"policy.json not found: export the policy with python -m fallkit mode=export"):
+        FallController.load(tmp_path)
+    (tmp_path / "policy.onnx").write_bytes((biped_export / "policy.onnx").read_bytes())
+    meta = json.loads((biped_export / "policy.json").read_text())
+    del meta["pd_gains"]
+    (tmp_path / "policy.json").write_text(json.dumps(meta))
+    with pytest.raises(DeployError, match=r"policy.json: lacks \['pd_gains'\]; export the policy with this fallkit"):
+        FallController.load(tmp_path)
+    (tmp_path / "policy.json").write_text("{not json")
+    with pytest.raises(DeployError, match=r"policy.json: not a policy.json"):
+        FallController.load(tmp_path)
+
+
+def test_the_shipped_example_runs(biped):
+    example = Path(__file__).parents[1] / "examples" / "biped20_quick"
+    c = FallController.load(example)
+    assert c.meta["robot"] == "biped20" and c.meta["model_hash"] == biped.model_hash()
+    assert len(c.end_poses) == 10
+    c.reset("prone_shield_head")
+    state = RobotState(base_quat=[0.9, 0.0, 0.43589, 0.0], base_ang_vel=[0.0, 1.0, 0.0], base_lin_vel=[0.3, 0.0, -0.2],
+                       joint_pos={n: 0.0 for n in c.joint_names}, joint_vel={n: 0.0 for n in c.joint_names})  # fmt: skip
+    for _ in range(10):
+        command = c.step(state)
+    assert command.source == "policy" and np.isfinite(command.setpoint).all()
+    lo, hi = c.limits[:, 0], c.limits[:, 1]
+    assert ((command.setpoint >= lo - 1e-9) & (command.setpoint <= hi + 1e-9)).all()
+
+
 def test_deploy_imports_neither_torch_nor_mujoco():
     code = ("import sys, fallkit.deploy; heavy = [m for m in ('torch', 'mujoco', 'hydra', 'torchrl', 'tensordict') "
             "if m in sys.modules]; print(heavy); sys.exit(bool(heavy))")  # fmt: skip

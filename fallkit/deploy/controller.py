@@ -27,6 +27,8 @@ import numpy as np
 from fallkit.deploy.state import EndPose, RobotState, check_state
 from fallkit.errors import DeployError
 
+_META_KEYS = ("robot", "joint_names", "policy_hz", "action_scale", "nominal_pose", "joint_limits", "pd_gains",
+              "observation_size", "observation_layout", "tracking_blend")  # fmt: skip
 _LAYOUT = ("root_quat", "root_lin_vel", "root_ang_vel", "joint_pos", "joint_vel", "last_action", "last_last_action",
            "goal_root_quat", "goal_joint_pos", "blend")  # fmt: skip
 
@@ -111,7 +113,13 @@ class FallController:
         for p in (meta_path, onnx_path):
             if not p.is_file():
                 raise DeployError(f"{p} not found: export the policy with python -m fallkit mode=export checkpoint=<run>")
-        meta = json.loads(meta_path.read_text())
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise DeployError(f"{meta_path}: not a policy.json ({exc}); export the policy again") from None
+        missing = [k for k in _META_KEYS if k not in meta]
+        if missing:
+            raise DeployError(f"{meta_path}: lacks {missing}; export the policy with this fallkit version (mode=export)")
         poses_path = folder / "end_poses.json"
         poses = {}
         if poses_path.is_file():
