@@ -44,7 +44,7 @@ def test_robot_group_comes_from_the_registry():
     raw = composed("robot=biped20_battery", "robot.sensitivity.battery=7.5")
     raw.pop("hydra", None)
     spec = robot_spec(validate(raw).robot)
-    assert spec.components["battery"].weight == 7.5 and spec.components["head"].weight == 4.0
+    assert spec.components["battery"].weight == 7.5 and spec.components["head"].weight == 1.0
 
 
 @pytest.mark.parametrize(

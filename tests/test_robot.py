@@ -59,12 +59,16 @@ def test_every_link_collides(biped):
         assert geoms, f"body {m.body(b).name} has no collision geometry"
 
 
-def test_battery_variant(biped):
-    battery = get_robot("biped20_battery")
-    assert battery.components["battery"].weight == 5.0
+def test_battery_variants_are_the_papers(biped):
+    """Sec. V-E / Table VI: battery 5.0 and every other component 1.0, against all weights 1.0."""
+    battery, baseline = get_robot("biped20_battery"), get_robot("biped20_battery_baseline")
+    assert {k: c.weight for k, c in battery.components.items()} == {
+        "pelvis": 1.0, "legs": 1.0, "elbows": 1.0, "shoulders": 1.0, "head": 1.0, "battery": 5.0}
+    assert {c.weight for c in baseline.components.values()} == {1.0} and "battery" in baseline.components
     assert battery.components["battery"].bodies == ["battery"]
     assert "battery" not in battery.components["pelvis"].bodies
     assert battery.mj_model().body_mass.sum() == pytest.approx(biped.mj_model().body_mass.sum())
+    assert battery.model_hash() == baseline.model_hash() == biped.model_hash()  # one body, one dataset
 
 
 def test_sensitivity_override(biped):

@@ -138,3 +138,14 @@ def test_mujoco_batch_matches_single_world_mj_step(biped):
         np.testing.assert_allclose(sim.state.qvel[i].numpy(), d.qvel, atol=1e-4, rtol=1e-5)
         # per-component peaks over every physics substep (float32 vs float64)
         np.testing.assert_allclose(peak[i].numpy(), ref_peak, rtol=1e-4, atol=1e-3)
+
+
+def test_root_lin_acc_is_kinematic_gravity_not_subtracted(biped):
+    """What the docstrings of SimState and the root_acc reward term say: Δv/Δt of the root, so a
+    robot in free fall (2 m up, holding its pose) reads 9.81 m/s² downward, not 0."""
+    sim = make_sim(biped, 1, "mujoco")
+    qpos, qvel = standing_state(biped, 1)
+    qpos[:, 2] += 2.0
+    sim.reset(torch.arange(1), qpos, qvel)
+    state = sim.step(torch.tensor(biped.nominal_q(), dtype=torch.float32)[None])
+    assert state.root_lin_acc[0].tolist() == pytest.approx([0.0, 0.0, -G], abs=0.05)

@@ -190,8 +190,8 @@ def trial_metrics(trace: FallTrace, policy_dt: float) -> TrialMetrics:
 def summarize(values: np.ndarray) -> dict[str, float]:
     """mean, std, median and 95th percentile of per-trial values."""
     v = np.asarray(values, dtype=np.float64)
-    if v.size == 0:
-        raise ValueError("summarize: no trials")
+    if v.size == 0:  # every trial was unstable: nothing to summarize, and the table says so
+        return dict.fromkeys(("mean", "std", "median", "p95"), float("nan"))
     return {
         "mean": float(v.mean()),
         "std": float(v.std()),
@@ -201,10 +201,13 @@ def summarize(values: np.ndarray) -> dict[str, float]:
 
 
 def summarize_trials(m: TrialMetrics, component_names: list[str]) -> dict:
-    """The eval.json object of one strategy."""
+    """The eval.json object of one strategy. Falls the simulator restarted (unstable) are counted
+    but left out of every statistic: their figures mix two falls."""
+    trials, unstable = len(m), int(m.unstable.sum())
+    m = m.take(~m.unstable)
     return {
-        "trials": len(m),
-        "unstable_trials": int(m.unstable.sum()),
+        "trials": trials,
+        "unstable_trials": unstable,
         "max_impact_force": summarize(m.max_impact_force),
         "mean_impact_force": summarize(m.mean_impact_force),
         "fall_mean_impact_force": summarize(m.fall_mean_impact_force),

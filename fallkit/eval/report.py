@@ -30,7 +30,8 @@ def write_results(results: dict[str, TrialMetrics], components: list[str], info:
         **{f"{s}/{key}": v for s, m in results.items() for key, v in m.arrays().items()},
     )
     title = f"{info['robot']}: {info['trials']} falls per strategy"
-    figures = plots.plot_all(results, components, run_dir, title)
+    stable = {name: m.take(~m.unstable) for name, m in results.items()}  # as in the statistics
+    figures = plots.plot_all(stable, components, run_dir, title)
     (run_dir / "eval.md").write_text(markdown_report(summary, info, [f.name for f in figures]))
     unstable = {n: s["unstable_trials"] for n, s in summary.items() if s["unstable_trials"]}
     if unstable:

@@ -5,8 +5,10 @@ and neck with Dynamixel-XH540-class servos (7 N·m). Joint axes and sign
 conventions are documented in the README ("Authoring a pose").
 
 Components and sensitivity weights follow the paper: pelvis and legs 1.0,
-elbows 2.0, shoulders 3.0, head 4.0. `biped20_battery` splits the rear battery
-pack off the pelvis as its own component with weight 5.0 (paper Sec. V-E).
+elbows 2.0, shoulders 3.0, head 4.0. The paper's critical-component experiment
+(Sec. V-E, Table VI) splits the rear battery pack off the pelvis as its own
+component: `biped20_battery` weights the battery 5.0 and every other component
+1.0, and its baseline `biped20_battery_baseline` weights every component 1.0.
 """
 
 from __future__ import annotations
@@ -59,7 +61,9 @@ _LEGS = [f"{s}_{b}" for s in ("left", "right") for b in ("hip_yaw_link", "hip_ro
 _SHOULDERS = [f"{s}_{b}" for s in ("left", "right") for b in ("shoulder_pitch_link", "shoulder_roll_link", "upper_arm")]
 
 
-def _components(battery_split: bool) -> dict[str, ComponentSpec]:
+def _components(battery_split: bool, battery_weight: float | None = None) -> dict[str, ComponentSpec]:
+    """biped20's components; with `battery_weight` the battery is its own component at that
+    weight and every other component weighs 1.0 (the paper's battery experiment)."""
     comps = {
         "pelvis": ComponentSpec(bodies=["pelvis"] if battery_split else ["pelvis", "battery"], weight=1.0),
         "legs": ComponentSpec(bodies=_LEGS, weight=1.0),
@@ -67,18 +71,19 @@ def _components(battery_split: bool) -> dict[str, ComponentSpec]:
         "shoulders": ComponentSpec(bodies=_SHOULDERS, weight=3.0),
         "head": ComponentSpec(bodies=["neck_yaw_link", "head"], weight=4.0),
     }
-    if battery_split:
-        comps["battery"] = ComponentSpec(bodies=["battery"], weight=5.0)
+    if battery_weight is not None:
+        comps = {k: c.model_copy(update={"weight": 1.0}) for k, c in comps.items()}
+        comps["battery"] = ComponentSpec(bodies=["battery"], weight=battery_weight)
     return comps
 
 
-def _spec(name: str, battery_split: bool) -> RobotSpec:
+def _spec(name: str, battery_weight: float | None = None) -> RobotSpec:
     return make_robot_spec(
         name,
         mjcf=MJCF,
         root_body="pelvis",
         joints=[JointSpec(name=j, kp=_GAINS[j][0], kd=_GAINS[j][1], torque_limit=_GAINS[j][2]) for j in JOINT_NAMES],
-        components=_components(battery_split),
+        components=_components(battery_weight is not None, battery_weight),
         nominal_pose=NOMINAL_POSE,
         disturbance_bodies={
             "hips": ["left_hip_roll_link", "right_hip_roll_link"],
@@ -94,9 +99,15 @@ def _spec(name: str, battery_split: bool) -> RobotSpec:
 
 def biped20() -> RobotSpec:
     """The built-in biped (entry point `biped20`)."""
-    return _spec("biped20", battery_split=False)
+    return _spec("biped20")
 
 
 def biped20_battery() -> RobotSpec:
-    """biped20 with the rear battery pack as its own component, weight 5.0 (entry point `biped20_battery`)."""
-    return _spec("biped20_battery", battery_split=True)
+    """The paper's battery experiment: the rear battery pack its own component at weight 5.0, every
+    other component 1.0 (entry point `biped20_battery`)."""
+    return _spec("biped20_battery", battery_weight=5.0)
+
+
+def biped20_battery_baseline() -> RobotSpec:
+    """Its baseline: the same components, every weight 1.0 (entry point `biped20_battery_baseline`)."""
+    return _spec("biped20_battery_baseline", battery_weight=1.0)

@@ -8,7 +8,9 @@ never know which backend runs.
 Conventions (world frame: z up; quaternions w, x, y, z; joints in policy order):
   root_lin_vel   world frame [m/s]
   root_ang_vel   root (body) frame [rad/s], as MuJoCo's free joint stores it
-  root_lin_acc   world frame [m/s^2], (v_end - v_start) / policy_dt, gravity excluded
+  root_lin_acc   world frame [m/s^2], (v_end - v_start) / policy_dt: the kinematic
+                 acceleration, gravity not subtracted (free fall reads 9.81 m/s^2
+                 downward; an accelerometer would read 0)
   joint_acc      (qdot_end - qdot_start) / policy_dt [rad/s^2]
   joint_torque   actuator torque at the last physics substep [N·m]
   contact_force  [N, substeps, components, 3] net contact force on each component

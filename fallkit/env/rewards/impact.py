@@ -26,5 +26,6 @@ def impact(ctx: RewardContext) -> torch.Tensor:
 
 
 def root_acc(ctx: RewardContext) -> torch.Tensor:
-    """−‖v̇_root‖² [(m/s²)²], v̇ = Δv/policy_dt of the root, world frame (gravity not removed)."""
+    """−‖v̇_root‖² [(m/s²)²], v̇ = Δv/policy_dt of the root, world frame: the kinematic acceleration,
+    gravity not subtracted (free fall gives ‖v̇‖ = 9.81; fallkit.sim.base, root_lin_acc)."""
     return -ctx.state.root_lin_acc.square().sum(dim=-1)
