@@ -33,6 +33,7 @@ import torch
 
 from fallkit.api import get_robot
 from fallkit.config import DatasetConfig
+from fallkit.poses.bins import side_shares
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.generator import EndPoseGenerator, _Candidates, to_dataset
 from fallkit.poses.settle import settle
@@ -64,15 +65,19 @@ def main() -> None:
     ap.add_argument("--worlds", type=int, default=1024)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="also write the dataset here (.npz)")
+    ap.add_argument("--min-share", type=float, default=None, help="dataset.min_share (default: DatasetConfig's)")
+    ap.add_argument("--targeted", type=float, default=None, help="dataset.targeted (default: DatasetConfig's)")
     args = ap.parse_args()
     torch.set_num_threads(1)  # the physics threads use the cores
 
     spec = get_robot(args.robot)
-    cfg = DatasetConfig(train=args.train, test=args.test, num_worlds=args.worlds, seed=args.seed)
+    extra = {k: v for k, v in (("min_share", args.min_share), ("targeted", args.targeted)) if v is not None}
+    cfg = DatasetConfig(train=args.train, test=args.test, num_worlds=args.worlds, seed=args.seed, **extra)
     load_before = os.getloadavg()[0]
     probe_before = physics_probe(spec)
     start = time.perf_counter()
     gen = EndPoseGenerator(spec, cfg, "mujoco", threads=0).run(progress=True)
+    sides = side_shares(gen.root_quat)
     seconds = time.perf_counter() - start
     probe_after = physics_probe(spec)
     load_after = os.getloadavg()[0]
@@ -107,6 +112,9 @@ def main() -> None:
         "cpus": os.cpu_count(),
         "hist_before": st["hist_before"],
         "hist_after": st["hist_after"],
+        "sides": {k: round(v, 4) for k, v in sides.items()},
+        # issue 14: lying on the left / right each at least 3/4 of lying on the front / back
+        "side_balance": round(min(sides["left"], sides["right"]) / max(sides["front"], sides["back"]), 3),
     }
     print(json.dumps(result))
 

@@ -94,6 +94,25 @@ def test_a_settled_pose_stays_put_with_frozen_gains(biped):
     assert np.median(slid) < 0.005
 
 
+def test_orientations_sampled_in_a_bin_land_in_it():
+    bins = OrientationBins(6, 8)
+    wanted = torch.arange(48).repeat(20)
+    quat = bins.sample(wanted, torch.Generator().manual_seed(0))
+    assert torch.equal(bins.index(quat), wanted) and torch.allclose(quat.norm(dim=-1), torch.ones(len(quat), dtype=quat.dtype))
+
+
+def test_targeted_drops_fill_the_same_bins_and_report_side_shares(biped):
+    """dataset.targeted aims a share of the drops at covered bins short of poses; the natural
+    frequencies (rarity) come from the uniform drops only."""
+    from fallkit.poses.bins import side_shares
+
+    cfg = DatasetConfig(**{**SMALL, "targeted": 0.5, "min_share": 0.5})
+    gen = EndPoseGenerator(biped, cfg).run(progress=False)
+    assert len(gen.joint_pos) == SMALL["train"] + SMALL["test"] and gen.stats["uniform_within_tolerance"]
+    shares = side_shares(gen.root_quat)
+    assert set(shares) == {"front", "back", "left", "right", "bottom", "top"} and abs(sum(shares.values()) - 1) < 1e-9
+
+
 def test_equal_area_bins_split_the_sphere_evenly():
     bins = OrientationBins(6, 8)
     d = torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)

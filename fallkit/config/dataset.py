@@ -45,6 +45,13 @@ class DatasetConfig(Section):
         "all their poses are kept and they are left out of the uniformity test",
     )
     max_drops: float = Field(6.0, gt=1, description="give up rebalancing after this many drops per pose")
+    targeted: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="share of the drops started with an orientation inside a covered bin still short of poses "
+        "(0: every drop uniform, as the paper samples them; the rarity of a bin is judged on the uniform drops)",
+    )
     abort_steps: int = Field(
         2, ge=0, description="policy steps a drop may lie slowly in an over-full bin before it is stopped (0 = never)"
     )

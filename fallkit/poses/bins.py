@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from fallkit.rotations import gravity_in_frame
+from fallkit.pose_format import _SIDE_AXES
+from fallkit.rotations import gravity_in_frame, quat_mul
 
 
 class OrientationBins:
@@ -49,6 +50,29 @@ class OrientationBins:
         sector = (torch.remainder(azimuth, 2 * math.pi) / (2 * math.pi) * self.sectors).long()
         return band * self.sectors + sector.clamp(0, self.sectors - 1)
 
+    def sample(self, bins: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Root orientations [n, 4] whose ground direction is uniform within each given bin [n]
+        (equal area: d_z uniform in the band, azimuth uniform in the sector), heading random."""
+        n = len(bins)
+        u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
+        band, sector = (bins // self.sectors).double(), (bins % self.sectors).double()
+        dz = -1.0 + 2.0 * (band + u[:, 0]) / self.bands
+        phi = (sector + u[:, 1] - 0.5) * (2 * math.pi / self.sectors)
+        r = torch.sqrt((1.0 - dz * dz).clamp(min=0.0))
+        down = torch.stack((r * torch.cos(phi), r * torch.sin(phi), dz), dim=-1)
+        # the rotation taking the root-frame vector -down (up, as the root sees it) to world +z ...
+        up = -down
+        w = 1.0 + up[:, 2]  # quaternion of the shortest arc from `up` to e_z, unnormalised: (1 + u·e_z, u × e_z)
+        xyz = torch.stack((up[:, 1], -up[:, 0], torch.zeros_like(w)), dim=-1)
+        flip = w < 1e-9  # up = -e_z exactly: half a turn about x
+        q = torch.cat((w[:, None], xyz), dim=-1)
+        q[flip] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=torch.float64)
+        q = q / q.norm(dim=-1, keepdim=True)
+        # ... then a random heading about world z (left-multiplied: it does not change the bin)
+        yaw = (2.0 * u[:, 2] - 1.0) * math.pi
+        heading = torch.stack((torch.cos(yaw / 2), torch.zeros_like(yaw), torch.zeros_like(yaw), torch.sin(yaw / 2)), -1)
+        return quat_mul(heading, q)
+
     def sector_labels(self) -> list[str]:
         """The side facing the ground in each sector (degrees where there are not 8 sectors)."""
         if self.sectors == 8:
@@ -63,6 +87,16 @@ class OrientationBins:
             "band": "equal steps of its z component from -1 (feet down) to +1 (head down)",
             "sector": "equal steps of atan2(y, x), sector 0 centred on +x (front down), counter-clockwise",
         }
+
+
+def side_shares(root_quat: torch.Tensor) -> dict[str, float]:
+    """Share of the poses lying on each side (front, back, left, right, bottom, top): the side
+    whose axis is nearest to straight down, as an artist file's `ground` names it."""
+    down = -gravity_in_frame(torch.as_tensor(root_quat).double().reshape(-1, 4))
+    axes = torch.tensor(list(_SIDE_AXES.values()), dtype=torch.float64)  # [6, 3]
+    side = (down @ axes.T).argmax(dim=1)
+    counts = torch.bincount(side, minlength=len(_SIDE_AXES)).double() / max(1, len(side))
+    return {name: float(c) for name, c in zip(_SIDE_AXES, counts)}
 
 
 def select_uniform(

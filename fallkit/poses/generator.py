@@ -29,7 +29,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -92,6 +92,10 @@ class _Candidates:
         self._qpos, self._joints = self._qpos[n:], self._joints[n:]
         return q, j
 
+    def place(self, quat: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        """qpos of candidates turned to other root orientations, 0.04 m above the floor again."""
+        return self.checker.on_ground(quat, joints, self.drop_height)[0]
+
 
 # ---- the pool of drops and its bookkeeping ----------------------------------------------------
 
@@ -121,6 +125,7 @@ class _DropPool:
         self.last_bin = torch.full((w,), -1, dtype=torch.long)
         self.in_full = torch.zeros(w, dtype=torch.long)  # steps spent slowly in one over-full bin
         self.active = torch.ones(w, dtype=torch.bool)  # a drop is in flight (idle once the budget is spent)
+        self.targeted = torch.zeros(w, dtype=torch.bool)  # its orientation was aimed at a bin short of poses
         self.drops = w
         self.steps = 0
 
@@ -145,14 +150,19 @@ class _DropPool:
         abort &= self.active
         return abort, now_bin
 
-    def refill(self, finished: torch.Tensor) -> None:
-        """Start the next candidates in the finished worlds (in world order) while the budget lasts."""
+    def refill(self, finished: torch.Tensor, aim: Callable[[int], tuple[torch.Tensor, torch.Tensor]]) -> None:
+        """Start the next candidates in the finished worlds (in world order) while the budget lasts;
+        `aim(n)` says which of them to turn toward a bin short of poses, and their orientations."""
         ids = torch.nonzero(finished & self.active).squeeze(1)
         room = max(0, self.budget - self.drops)
         self.active[ids[room:]] = False
         ids = ids[:room]
         if len(ids):
             qpos, joints = self.cands.take(len(ids))
+            targeted, quat = aim(len(ids))
+            if targeted.any():
+                qpos[targeted] = self.cands.place(quat, joints[targeted])
+            self.targeted[ids] = targeted
             self.sim.reset(ids, qpos, self.zero_v[: len(ids)])
             self.hold[ids.to(self.sim.device)] = joints.float().to(self.sim.device)
             self.rest.restart(ids)
@@ -166,7 +176,8 @@ class _Tally:
 
     def __init__(self, k: int):
         self.counts = np.zeros(k, np.int64)  # settled poses per bin
-        self.seen = np.zeros(k, np.int64)  # settled or stopped early, per bin: the natural frequencies
+        # settled or stopped early, per bin, of the untargeted drops only: the natural frequencies
+        self.seen = np.zeros(k, np.int64)
         self.quat: list[torch.Tensor] = []
         self.joints: list[torch.Tensor] = []
         self.height: list[torch.Tensor] = []
@@ -174,7 +185,8 @@ class _Tally:
         self.unsettled = self.unstable = self.aborted_overfull = 0
         self.settle_steps = 0
 
-    def record(self, st: CpuState, ok: torch.Tensor, age: torch.Tensor, bins: OrientationBins) -> None:
+    def record(self, st: CpuState, ok: torch.Tensor, age: torch.Tensor, bins: OrientationBins,
+               targeted: torch.Tensor) -> None:  # fmt: skip
         """Keep the poses of the worlds at rest (`ok`), in world order: deterministic."""
         idx = torch.nonzero(ok).squeeze(1)
         b = bins.index(st.root_quat[idx])
@@ -182,9 +194,8 @@ class _Tally:
         self.joints.append(st.joint_pos[idx].clone())
         self.height.append(st.root_height[idx].clone())
         self.bins.append(b)
-        landed = np.bincount(b.numpy(), minlength=len(self.counts))
-        self.counts += landed
-        self.seen += landed
+        self.counts += np.bincount(b.numpy(), minlength=len(self.counts))
+        self.seen += np.bincount(b[~targeted[idx]].numpy(), minlength=len(self.counts))
         self.settle_steps += int(age[idx].sum())
 
 
@@ -241,7 +252,7 @@ class EndPoseGenerator:
             self._show(bar, pool, tally, balance, total)
             if balance.done:
                 break
-            pool.refill(finished)
+            pool.refill(finished, lambda n, b=balance: self._aim(n, b, tally, g))
             if not pool.active.any():  # the budget is spent and every drop has ended
                 break
         if balance.done:
@@ -259,7 +270,7 @@ class EndPoseGenerator:
         bad = st.unstable & pool.active
         ok = at_rest & ~bad
         if ok.any():
-            tally.record(st, ok, pool.rest.age, self.bins)
+            tally.record(st, ok, pool.rest.age, self.bins, pool.targeted)
         tally.unsettled += int((timeout & ~bad).sum())
         tally.unstable += int(bad.sum())
         balance = _Balance.of(tally.counts, tally.seen, total, self.config)
@@ -268,8 +279,20 @@ class EndPoseGenerator:
         ended = ok | timeout | bad
         abort, now_bin = pool.stop_overfull(st, ended, balance.full(tally.counts), self.bins)
         tally.aborted_overfull += int(abort.sum())
-        tally.seen += np.bincount(now_bin[abort].numpy(), minlength=self.bins.count)
+        tally.seen += np.bincount(now_bin[abort & ~pool.targeted].numpy(), minlength=self.bins.count)
         return balance, ended | abort
+
+    def _aim(self, n: int, balance: "_Balance", tally: _Tally, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """Which of n new drops to aim at covered bins still short of their level (a `targeted` share,
+        bins in proportion to what they lack) and their orientations; the others keep the paper's
+        uniform orientation. With targeted = 0 nothing is drawn: the same seed, the same dataset."""
+        aim = torch.zeros(n, dtype=torch.bool)
+        short = np.where(balance.rare, 0.0, np.maximum(balance.level - tally.counts, 0.0))
+        if self.config.targeted == 0 or short.sum() <= 0:
+            return aim, torch.empty(0, 4, dtype=torch.float64)
+        aim = torch.rand(n, generator=g, dtype=torch.float64) < self.config.targeted
+        bins = torch.multinomial(torch.from_numpy(short), max(1, int(aim.sum())), replacement=True, generator=g)
+        return aim, self.bins.sample(bins[: int(aim.sum())], g)
 
     def _show(self, bar: tqdm, pool: _DropPool, tally: _Tally, balance: _Balance, total: int) -> None:
         bar.update(max(0, min(total, balance.useful(tally.counts)) - bar.n))
