@@ -230,6 +230,8 @@ def test_ratios_are_over_the_best_standard_strategy():
         "policy / best standard strategy: max impact 0.90x, fall-phase mean impact 0.90x, MROE 1.00x, MJE 0.20x "
         "(lower is better)"
     )
+    summary["zero_torque"] = row(float("nan"), float("nan"))  # every trial unstable: no mean, not the best
+    assert ratios(summary)["max_impact_ratio"] == pytest.approx(900 / 1200)
 
 
 def test_report_cli_prints_the_ratio_lines_or_one_clear_error(tmp_path):

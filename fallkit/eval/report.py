@@ -54,7 +54,9 @@ def ratios(summary: dict, name: str = POLICY) -> dict[str, float]:
     """`name`'s mean of each metric over the best (lowest) of the three standard strategies' means."""
     out = {}
     for key, metric in RATIOS.items():
-        best = min(summary[s][metric]["mean"] for s in STRATEGIES)
+        # a strategy whose every trial was unstable has no mean (nan): it cannot be the best
+        means = [m for m in (summary[s][metric]["mean"] for s in STRATEGIES) if m == m]
+        best = min(means, default=float("nan"))
         out[key] = summary[name][metric]["mean"] / best if best > 0 else float("nan")  # nan: nothing to compare
     return out
 
