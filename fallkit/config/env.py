@@ -67,6 +67,37 @@ class DisturbanceConfig(Section):
     roles: dict[str, DisturbanceRange] = Field(default_factory=_table_iv)
 
 
+class RandomRange(Section):
+    """A quantity drawn uniformly in [low, high] per episode, when enabled."""
+
+    enabled: bool = False
+    low: float = Field(gt=0)
+    high: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "RandomRange":
+        if self.low > self.high:
+            raise ValueError(f"low {self.low} > high {self.high}")
+        return self
+
+
+class RandomizationConfig(Section):
+    """Per-episode domain randomisation for sim-to-real (each off by default; fallkit.env.randomization).
+    The critic observes the friction; evaluation switches every one off."""
+
+    friction: RandomRange = Field(
+        default_factory=lambda: RandomRange(low=0.5, high=1.25),
+        description="sliding friction of every contact (legged_gym-like range)",
+    )
+    gain_scale: RandomRange = Field(
+        default_factory=lambda: RandomRange(low=0.8, high=1.2),
+        description="PD stiffness and damping × this: actuator strength",
+    )
+    action_delay: float = Field(
+        0.0, ge=0, le=1, description="chance that an episode applies every action one policy step late (0 = never)"
+    )
+
+
 class EnvConfig(Section):
     """Episode, action and observation settings of FallEnv."""
 
@@ -87,6 +118,7 @@ class EnvConfig(Section):
     noise: ObservationNoise = Field(default_factory=ObservationNoise)
     initial_state: InitialStateConfig = Field(default_factory=InitialStateConfig)
     disturbances: DisturbanceConfig = Field(default_factory=DisturbanceConfig)
+    randomization: RandomizationConfig = Field(default_factory=RandomizationConfig)
     samplers: dict[str, str] = Field(
         default_factory=lambda: {r: r for r in _SAMPLER_ROLES},
         description="sampler role -> registered sampler (group fallkit.samplers)",

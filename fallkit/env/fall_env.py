@@ -43,6 +43,7 @@ from fallkit.env.observations import (
     path_frame,
     planar_motion,
 )
+from fallkit.env.randomization import EpisodeRandomization
 from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.env.rewards.tracking import blend
 from fallkit.poses.end_pose_set import EndPoseSet
@@ -88,6 +89,7 @@ class FallEnv(EnvBase):
         self._make_samplers_and_rewards()
         self._make_constants()
         self._make_episode_buffers()
+        self.randomization = EpisodeRandomization(env_cfg.randomization, sim, spec.friction, self.device)
         self._make_specs()
 
     # ---- public helpers -------------------------------------------------------------
@@ -152,6 +154,7 @@ class FallEnv(EnvBase):
         state = {name: getattr(self, name).clone() for name in self._BUFFERS}
         state["sim"] = self.sim.state_dict()
         state["generators"] = (self._cpu_gen.get_state(), self._gen.get_state())
+        state["randomization"] = self.randomization.state()
         if self.disturbances is not None:
             d = self.disturbances
             state["disturbances"] = (d.active.clone(), d.remaining.clone(), d.wrench.clone())
@@ -168,6 +171,8 @@ class FallEnv(EnvBase):
         self.sim.load_state_dict(state["sim"])
         self._cpu_gen.set_state(state["generators"][0])
         self._gen.set_state(state["generators"][1])
+        if "randomization" in state:
+            self.randomization.load(state["randomization"])
         if self.disturbances is not None and "disturbances" in state:
             d = self.disturbances
             d.active, d.remaining, d.wrench = (t.to(self.device) for t in state["disturbances"])
@@ -214,12 +219,13 @@ class FallEnv(EnvBase):
         self._motion[ids] = torch.cat((planar_motion(st.body_vel[ids, 1:]), torch.zeros_like(self._motion[ids, 2:])), 1)
         if self.disturbances is not None:
             self.disturbances.reset(mask, self._gen)
+        self.randomization.reset(ids, self._gen)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         if self.disturbances is not None:
             self.sim.set_external_wrench(self.disturbances.body_ids, self.disturbances.step(self.dt, self._gen))
-        st = self.sim.step(self.setpoint(action))
+        st = self.sim.step(self.setpoint(self.randomization.applied(action, self.last_action)))
         self.step_count += 1
         unstable = st.unstable.to(self.device)
 
@@ -275,13 +281,12 @@ class FallEnv(EnvBase):
 
     def _make_constants(self) -> None:
         """Robot and goal constants on the device: nominal pose, joint limits, sensitivity,
-        friction, the end poses' tilts, and the observation noise."""
+        the end poses' tilts, and the observation noise."""
         spec, f32 = self.spec, dict(dtype=torch.float32, device=self.device)
         self.nominal = torch.as_tensor(spec.nominal_q(), **f32)
         limits = torch.as_tensor(spec.joint_limits, **f32)
         self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
         self.sensitivity = torch.as_tensor(spec.sensitivity, **f32)
-        self._friction = torch.tensor([[spec.friction]], **f32)
         self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
         std = noise_std(spec, self.env_cfg.noise)
         noisy = std.nonzero()
@@ -332,7 +337,7 @@ class FallEnv(EnvBase):
             self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos, observed,
         )  # fmt: skip
         critic = critic_observation(
-            actor, frame, self.step_count * (1.0 / self.max_steps), self._friction, st.root_pos[:, 2],
+            actor, frame, self.step_count * (1.0 / self.max_steps), self.randomization.friction, st.root_pos[:, 2],
             st.body_pos[:, 1:, 2], self._motion,
         )  # fmt: skip
         policy = actor

@@ -8,7 +8,7 @@ order is written in one place. Gaussian noise goes on the measured parts only.
 
 Critic (privileged): the noiseless actor observation, then
   phase           1  t / T
-  friction        1  floor sliding friction (constant until friction is randomized)
+  friction        1  sliding friction of the contacts (per episode with env.randomization.friction)
   root_height     1  [m]
   body_height   B-1  height of every body [m]
   body_vel   6(B-1)  spatial velocity of every body (MuJoCo cvel: angular, linear about

@@ -95,6 +95,7 @@ def eval_run_config(config: FallkitConfig, seconds: float | None) -> FallkitConf
     env_update: dict[str, Any] = {
         "noise": env.noise.model_copy(update={"scale": 0.0}),
         "disturbances": env.disturbances.model_copy(update={"enabled": False}),
+        "randomization": type(env.randomization)(),  # nominal friction, gains and timing
         "pose_fraction": 1.0,  # a dataset-size ablation subsamples training poses, never the test split
     }
     if seconds is not None:

@@ -93,6 +93,10 @@ class BatchSim(Protocol):
     def set_external_wrench(self, body_ids: torch.Tensor, wrench: torch.Tensor) -> None:
         """Apply [N, len(body_ids), 6] force (xyz) and torque (xyz), world frame, until changed."""
 
+    def set_friction(self, friction: torch.Tensor) -> None:
+        """Sliding friction of every geom, per world ([N]): every contact's coefficient (MuJoCo
+        takes the larger of the two geoms'), until changed."""
+
     def state_dict(self) -> dict:
         """The full physics state of all worlds, so a resumed run continues exactly."""
 

@@ -57,6 +57,7 @@ class MujocoSim:
         self._cvel = b.bind("cvel") if body_state else None
         self._torque = b.bind("actuator_force")
         self._warning = b.warning
+        self._friction: np.ndarray | None = None  # per-world geom friction, once randomised
         self._base_kp = self.model.actuator_gainprm[:, 0].copy()
         self._base_kd = -self.model.actuator_biasprm[:, 2].copy()
         self._gainprm = None  # expanded per world on first gain change (shared until then)
@@ -117,6 +118,11 @@ class MujocoSim:
         self._gainprm[:, :, 0] = self._base_kp * s
         self._biasprm[:, :, 1] = -self._base_kp * s
         self._biasprm[:, :, 2] = -self._base_kd * s
+
+    def set_friction(self, friction: torch.Tensor) -> None:
+        if self._friction is None:
+            self._friction = self.batch.expand("geom_friction")  # [N, ngeom, 3], per world from now on
+        self._friction[:, :, 0] = np.asarray(friction.detach().cpu(), dtype=np.float64).reshape(-1, 1)
 
     def set_external_wrench(self, body_ids: torch.Tensor, wrench: torch.Tensor) -> None:
         ids = np.asarray(body_ids.cpu(), dtype=np.int64)

@@ -150,7 +150,8 @@ def put_warp_model(model: mujoco.MjModel, num_worlds: int, per_world_gains: bool
     """The device model, as both fallkit and the raw benchmark build it (same kernels)."""
     import mujoco_warp as mjw
 
-    batch = {"actuator_gainprm": num_worlds, "actuator_biasprm": num_worlds} if per_world_gains else None
+    # per world: the PD gains (strategies, gain randomisation) and the friction (randomisation)
+    batch = {"actuator_gainprm": num_worlds, "actuator_biasprm": num_worlds, "geom_friction": num_worlds} if per_world_gains else None
     m = mjw.put_model(model, batch_sizes=batch)
     # fallkit checks the overflow flags itself and raises one clear error, so the
     # kernels' own printf warnings (also printed for solver iteration limits) stay off.

@@ -206,6 +206,9 @@ class WarpSim:
         self._biasprm[:, :, 1] = -self._base_kp * s
         self._biasprm[:, :, 2] = -self._base_kd * s
 
+    def set_friction(self, friction: torch.Tensor) -> None:
+        self._geom_friction[:, :, 0] = friction.detach().to(self.device, torch.float32).reshape(-1, 1)
+
     def set_external_wrench(self, body_ids: torch.Tensor, wrench: torch.Tensor) -> None:
         ids = body_ids.to(self.device, torch.long)
         self._xfrc.zero_()
@@ -255,6 +258,7 @@ class WarpSim:
         self._torque = t(d.actuator_force)
         self._overflow = t(d.overflow)
         self._gainprm = t(self._m.actuator_gainprm)  # [N, nu, 10]
+        self._geom_friction = t(self._m.geom_friction)  # [N, ngeom, 3]
         self._biasprm = t(self._m.actuator_biasprm)
         self._base_kp = torch.tensor(self.model.actuator_gainprm[:, 0], dtype=torch.float32, device=self.device)
         self._base_kd = torch.tensor(-self.model.actuator_biasprm[:, 2], dtype=torch.float32, device=self.device)
