@@ -71,7 +71,7 @@ class _DuplicateKey(Exception):
 
 
 class _LineLoader(yaml.SafeLoader):
-    pass
+    """YAML's safe loader whose mappings remember their lines (`_construct_mapping`, registered below)."""
 
 
 def _construct_mapping(loader: _LineLoader, node: yaml.MappingNode) -> _Map:

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from helpers import fallkit_cli
 from tensordict.nn import TensorDictModule
 from torch import nn
 
@@ -154,11 +153,6 @@ def test_chunking_fits_the_worlds_with_little_padding(trials, strategies, num_en
     assert k * chunks >= trials and k * chunks - trials < chunks
 
 
-def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
-
-
 def test_cli_evaluates_a_trained_policy_against_the_strategies(tmp_path):
     """mode=eval end to end: a (tiny, briefly trained) checkpoint, artist end poses, eval.json with four strategies."""
     from hydra import compose, initialize_config_module
@@ -182,7 +176,7 @@ def test_cli_evaluates_a_trained_policy_against_the_strategies(tmp_path):
     trained = validate(raw)
     Trainer(trained, tmp_path / "train").run()
 
-    r = _cli(f"checkpoint={tmp_path / 'train'}", "mode=eval", "eval.trials=3", "sim.num_envs=8", "hydra.run.dir=eval", cwd=tmp_path)
+    r = fallkit_cli(f"checkpoint={tmp_path / 'train'}", "mode=eval", "eval.trials=3", "sim.num_envs=8", "hydra.run.dir=eval", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     data = json.loads((tmp_path / "eval" / "eval.json").read_text())
     assert list(data) == ["policy", *STRATEGIES, "seek"]

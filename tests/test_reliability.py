@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import TINY, fallkit_cli
 
 from fallkit.config import DatasetConfig
 from fallkit.errors import PoseFileError
@@ -20,12 +21,6 @@ from fallkit.poses import load_end_poses
 from fallkit.poses.dataset import default_dataset, load_dataset, save_dataset
 from fallkit.poses.generator import EndPoseGenerator
 from fallkit.sim import make_sim
-
-
-def fallkit_cli(*args: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=timeout)  # fmt: skip
 
 
 def test_a_small_dataset_is_made_with_the_default_pool(biped):
@@ -164,11 +159,6 @@ def test_hydra_composition_errors_are_one_line_exit_2(tmp_path, args, line):
 
 
 # ---- item 6: resume after a crash -------------------------------------------------------------------
-
-TINY = ["train=quick", "sim.num_envs=8", "sim.threads=1", "train.num_steps=4", "train.actor_hidden=[16,16]",
-        "train.critic_hidden=[16,16]", "train.ppo.num_minibatches=2", "train.ppo.epochs=2", "train.evaluate=false",
-        "env.episode_length=0.2", "reward.blend_time=0.1"]  # fmt: skip
-
 
 def test_a_run_killed_with_sigkill_resumes_with_its_own_configuration(tmp_path):
     """kill -9 leaves iter_*.pt only, and metrics rows past the newest of them. `resume=<run dir>`

@@ -12,37 +12,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
-from omegaconf import OmegaConf
+from helpers import TINY, composed_config, fallkit_cli
 
-from fallkit.app import register_configs
-from fallkit.config import validate
 from fallkit.rl.checkpoint import load_checkpoint
-
-TINY = [
-    "train=quick",
-    "sim.num_envs=8",
-    "sim.threads=1",
-    "train.num_steps=4",
-    "train.actor_hidden=[16,16]",
-    "train.critic_hidden=[16,16]",
-    "train.ppo.num_minibatches=2",
-    "train.ppo.epochs=2",
-    "train.evaluate=false",
-    "env.episode_length=0.2",
-    "reward.blend_time=0.1",
-]
 
 
 def tiny_config(*overrides: str):
-    GlobalHydra.instance().clear()
-    register_configs()
-    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[*TINY, *overrides])
-    raw = OmegaConf.to_container(cfg, resolve=False)
-    raw.pop("hydra", None)
-    return validate(raw)
+    return composed_config(*TINY, *overrides)
 
 
 def train(run_dir: Path, *overrides: str) -> Path:
@@ -90,12 +66,6 @@ def test_resume_from_corrupt_checkpoint_is_a_clear_error(tmp_path):
         train(tmp_path / "run", f"resume={bad}")
 
 
-def _cli(*args: str, cwd: Path, timeout: float = 300, **popen) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=timeout, **popen)  # fmt: skip
-
-
 def test_sigterm_saves_and_stops(tmp_path):
     """A run asked to stop (SIGTERM) finishes its iteration and leaves a usable checkpoint."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -116,7 +86,7 @@ def test_sigterm_saves_and_stops(tmp_path):
 
 
 def test_multirun_gives_each_run_its_own_directory(tmp_path):
-    r = _cli("-m", *TINY, "train.iterations=1", "seed=0,1", "hydra.sweep.dir=sweep", cwd=tmp_path)
+    r = fallkit_cli("-m", *TINY, "train.iterations=1", "seed=0,1", "hydra.sweep.dir=sweep", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     runs = sorted(p for p in (tmp_path / "sweep").iterdir() if p.is_dir())
     assert len(runs) == 2

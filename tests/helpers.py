@@ -1,0 +1,38 @@
+"""What several test modules share: the command line, the tiny training sizes, a composed config."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+# A training small enough for a test: 8 envs × 4 steps, 2 × 16 networks, no evaluation, short falls.
+TINY_RUN = ["train=quick", "sim.num_envs=8", "sim.threads=1", "train.num_steps=4", "train.ppo.num_minibatches=2",
+            "train.ppo.epochs=2", "train.evaluate=false", "env.episode_length=0.2", "reward.blend_time=0.1"]  # fmt: skip
+TINY = [*TINY_RUN, "train.actor_hidden=[16,16]", "train.critic_hidden=[16,16]"]
+
+
+def fallkit_cli(*args: str, cwd: Path, timeout: float = 300, **popen) -> subprocess.CompletedProcess:
+    """`python -m fallkit …` in `cwd`, output captured."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout, **popen)  # fmt: skip
+
+
+def composed_config(*overrides: str):
+    """The validated FallkitConfig that `python -m fallkit <overrides>` would run with."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    from fallkit.app import register_configs
+    from fallkit.config import validate
+
+    GlobalHydra.instance().clear()
+    register_configs()
+    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=list(overrides))
+    raw = OmegaConf.to_container(cfg, resolve=False)
+    raw.pop("hydra", None)
+    return validate(raw)
