@@ -122,7 +122,7 @@ class Trainer:
         return batch
 
     def learn(self, batch: TensorDict) -> dict[str, float]:
-        """The PPO update on all cores, then the batch into the running observation statistics."""
+        """The PPO update on this process's share of the cores, then the batch into the running observation statistics."""
         self._share_cores()
         torch.set_num_threads(self.update_threads)
         stats = self.ppo.update(batch, generator=self.shuffle)
