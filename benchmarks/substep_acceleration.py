@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 
 from fallkit.deploy import EndPose, FallController
-from fallkit.deploy.sim2sim import _estimate, _motor_model
+from fallkit.deploy.sim2sim import _estimate, _fall_substep, _motor_model
 from fallkit.eval.evaluate import make_eval_env, prepare
 from fallkit.eval.rollout import draw_trials
 from fallkit.rl.policy import load_policy
@@ -43,7 +43,7 @@ def main() -> None:
     spec, controller = env.spec, FallController.load(args.export)
     model, lay = _motor_model(spec), Layout(spec)
     data = mujoco.MjData(model)
-    v, jq, jv = lay.root_qvel, lay.joint_qpos.numpy(), lay.joint_qvel.numpy()
+    v, jv = lay.root_qvel, lay.joint_qvel.numpy()
     rec = {k: [] for k in ("root_step", "root_sub", "joint_step", "joint_sub")}
     for i in range(args.trials):
         pose = int(trials.pose_ids[i])
@@ -57,9 +57,7 @@ def main() -> None:
             root0, joint0, root_sub, joint_sub = data.qvel[v : v + 3].copy(), data.qvel[jv].copy(), 0.0, 0.0
             for _ in range(spec.substeps):
                 r, j = data.qvel[v : v + 3].copy(), data.qvel[jv].copy()
-                tau = cmd.kp * (cmd.setpoint - data.qpos[jq]) - cmd.kd * data.qvel[jv]
-                data.ctrl[:] = np.clip(tau, -cmd.torque_limit, cmd.torque_limit)
-                mujoco.mj_step(model, data)
+                _fall_substep(model, data, lay, cmd)  # sim2sim's PD torques and mj_step
                 root_sub = max(root_sub, float(np.sum(((data.qvel[v : v + 3] - r) / model.opt.timestep) ** 2)))
                 joint_sub = max(joint_sub, float(np.sum(((data.qvel[jv] - j) / model.opt.timestep) ** 2)))
             rec["root_step"].append(float(np.sum(((data.qvel[v : v + 3] - root0) / spec.policy_dt) ** 2)))

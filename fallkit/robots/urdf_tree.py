@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fallkit.errors import URDFError
+from fallkit.errors import URDFError, require_file
 
 READABLE_MESHES = (".stl", ".obj", ".msh")  # what MuJoCo's compiler reads without plugins
 
@@ -45,8 +45,7 @@ class UrdfTree:
 
 def read_urdf(path: Path) -> UrdfTree:
     """The URDF at `path`, checked to be one <robot> of uniquely named links joined by joints."""
-    if not path.is_file():
-        raise URDFError(f"{path}: URDF file not found")
+    path = require_file(path, "URDF file", URDFError)
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
