@@ -38,6 +38,12 @@ class PPOConfig(Section):
         gt=0,
         description="the critic's own fixed Adam rate; null = the actor's KL-adaptive rate (rsl_rl, the paper)",
     )
+    mirror: bool = Field(
+        False,
+        description="left-right symmetry augmentation: every minibatch also trains on its mirror image (mirrored "
+        "observations and actions, same advantage; fallkit.env.mirror). Only for robots whose derived mirror map "
+        "exists (RobotSpec.mirror_map); off until a paired learning run shows it pays (docs/training.md)",
+    )
 
 
 class TrainConfig(Section):

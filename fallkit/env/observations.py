@@ -39,6 +39,9 @@ class ObservationPart:
     per_joint: bool = False
     noise: str | None = None  # the ObservationNoise field giving its std; None: exact (actions, goal)
     doc: str = ""
+    # How it reflects through the robot's sagittal plane (fallkit.env.mirror: quat, vector, pseudovector,
+    # joint, scalar). No default on purpose: a new part without one is an error there, not a silent guess.
+    mirror: str | None = None
 
     def width(self, spec: RobotSpec) -> int:
         return self.size * len(spec.joints) if self.per_joint else self.size
@@ -46,16 +49,16 @@ class ObservationPart:
 
 # The actor observation, in order (paper Sec. IV-A: s_t, then the goal g_t).
 ACTOR_OBSERVATION: tuple[ObservationPart, ...] = (
-    ObservationPart("root_quat", 4, noise="root_quat", doc="root orientation in the path frame (tilt_quat: heading removed, w >= 0)"),
-    ObservationPart("root_lin_vel", 3, noise="root_lin_vel", doc="root linear velocity, root frame [m/s]"),
-    ObservationPart("root_ang_vel", 3, noise="root_ang_vel", doc="root angular velocity, root frame [rad/s]"),
-    ObservationPart("joint_pos", 1, per_joint=True, noise="joint_pos", doc="joint angles [rad]"),
-    ObservationPart("joint_vel", 1, per_joint=True, noise="joint_vel", doc="joint velocities [rad/s]"),
-    ObservationPart("last_action", 1, per_joint=True, doc="a_{t-1}, policy action units"),
-    ObservationPart("last_last_action", 1, per_joint=True, doc="a_{t-2}, policy action units"),
-    ObservationPart("goal_root_quat", 4, doc="end-pose root orientation in the path frame (see FallEnv)"),
-    ObservationPart("goal_joint_pos", 1, per_joint=True, doc="end-pose joint angles [rad]"),
-    ObservationPart("blend", 1, doc="u(t), the tracking blend of the time since the fall began (0 -> 1 over T_blend)"),
+    ObservationPart("root_quat", 4, noise="root_quat", doc="root orientation in the path frame (tilt_quat: heading removed, w >= 0)", mirror="quat"),
+    ObservationPart("root_lin_vel", 3, noise="root_lin_vel", doc="root linear velocity, root frame [m/s]", mirror="vector"),
+    ObservationPart("root_ang_vel", 3, noise="root_ang_vel", doc="root angular velocity, root frame [rad/s]", mirror="pseudovector"),
+    ObservationPart("joint_pos", 1, per_joint=True, noise="joint_pos", doc="joint angles [rad]", mirror="joint"),
+    ObservationPart("joint_vel", 1, per_joint=True, noise="joint_vel", doc="joint velocities [rad/s]", mirror="joint"),
+    ObservationPart("last_action", 1, per_joint=True, doc="a_{t-1}, policy action units", mirror="joint"),
+    ObservationPart("last_last_action", 1, per_joint=True, doc="a_{t-2}, policy action units", mirror="joint"),
+    ObservationPart("goal_root_quat", 4, doc="end-pose root orientation in the path frame (see FallEnv)", mirror="quat"),
+    ObservationPart("goal_joint_pos", 1, per_joint=True, doc="end-pose joint angles [rad]", mirror="joint"),
+    ObservationPart("blend", 1, doc="u(t), the tracking blend of the time since the fall began (0 -> 1 over T_blend)", mirror="scalar"),
 )  # fmt: skip
 
 
@@ -88,6 +91,14 @@ def critic_layout(spec: RobotSpec) -> list[tuple[str, int]]:
     return [(f"actor.{n}", s) for n, s in actor_layout(spec)] + [
         ("phase", 1), ("friction", 1), ("root_height", 1), ("body_height", b), ("body_vel", 6 * b), ("body_acc", 6 * b),
     ]  # fmt: skip
+
+
+# How the critic's privileged parts reflect (fallkit.env.mirror), by name as critic_layout gives them:
+# per-body parts are permuted by the robot's body map; body motion is component-major (ω then v).
+PRIVILEGED_MIRROR: dict[str, str] = {
+    "phase": "scalar", "friction": "scalar", "root_height": "scalar",
+    "body_height": "body", "body_vel": "body_motion", "body_acc": "body_motion",
+}  # fmt: skip
 
 
 def noise_std(spec: RobotSpec, noise: ObservationNoise) -> torch.Tensor:

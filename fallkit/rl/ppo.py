@@ -11,6 +11,12 @@ One call of `PPO.update(batch)` is one iteration's learning:
   3. Before each minibatch's step, the KL between the collecting policy and the
      current one (exact, for diagonal Gaussians) adapts the learning rate as rsl_rl
      does: KL > 2·target → lr / 1.5, KL < target / 2 → lr · 1.5, within [lr_min, lr_max].
+  4. With `mirror` (symmetric robots, fallkit.env.mirror), each minibatch is extended by its
+     mirror image before the loss: mirrored policy and critic observations and actions with
+     the original advantage, value target, old value and old log-probability (rsl_rl's
+     symmetry augmentation), so every sample also teaches the mirrored fall. The KL above
+     stays on the original samples: only they were drawn from the collecting policy.
+     `mirror_loss` logs how far the policy is from symmetric (see `mirror_error`).
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -28,7 +34,8 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from fallkit.config import PPOConfig
-from fallkit.rl.models import policy_net
+from fallkit.env.mirror import ObservationMirror
+from fallkit.rl.models import GaussianPolicyNet, policy_net
 
 
 def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:
@@ -48,9 +55,22 @@ def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tenso
     return kl.sum(-1).mean()
 
 
+def mirror_error(net: GaussianPolicyNet, mirror: ObservationMirror, obs: torch.Tensor, loc: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between π(mirror(o)) and mirror(π(o)), the policy means [action units²].
+
+    0 for a policy that acts on a mirrored fall exactly as the mirror image of how it acts on the
+    fall; the augmentation should drive it down, and without it nothing does.
+    """
+    mirrored_loc, _ = net(mirror.actor(obs))
+    return (mirrored_loc - mirror.action(loc)).square().mean()
+
+
 class PPO:
-    def __init__(self, actor, critic, cfg: PPOConfig):
+    def __init__(self, actor, critic, cfg: PPOConfig, mirror: ObservationMirror | None = None):
+        if cfg.mirror and mirror is None:
+            raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
         self.cfg = cfg
+        self.mirror = mirror if cfg.mirror else None
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
@@ -85,21 +105,28 @@ class PPO:
         mb = n // cfg.num_minibatches
         net = policy_net(self.actor)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "kl": 0.0, "clip_fraction": 0.0}
+        if self.mirror is not None:
+            sums["mirror_loss"] = 0.0
         count = 0
         for _ in range(cfg.epochs):
             perm = torch.randperm(n, generator=generator, device="cpu").to(flat.device)
             for k in range(cfg.num_minibatches):
                 data = flat[perm[k * mb : (k + 1) * mb]]
-                # KL of this minibatch between the collecting policy and the current one
+                # KL of this minibatch between the collecting policy and the current one (the collected
+                # samples only, even with the mirror: only they were drawn from the collecting policy)
                 with torch.no_grad():
                     loc, scale = net(data["policy"])
                     kl = gaussian_kl(data["loc"], data["scale"], loc, scale)
                     kl = _mean_over_ranks(kl)
+                    if self.mirror is not None:
+                        sums["mirror_loss"] += mirror_error(net, self.mirror, data["policy"], loc).item()
                 self.learning_rate = adapt_learning_rate(self.learning_rate, kl.item(), cfg)
                 actor_group, critic_group = self.optimizer.param_groups
                 actor_group["lr"] = self.learning_rate
                 critic_group["lr"] = cfg.critic_learning_rate or self.learning_rate
 
+                if self.mirror is not None:
+                    data = self._with_mirror_image(data)
                 out = self.loss(data)
                 loss = out["loss_objective"] + out["loss_critic"]
                 if "loss_entropy" in out.keys():
@@ -122,6 +149,22 @@ class PPO:
         # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
         stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
         return stats
+
+    def _with_mirror_image(self, data: TensorDict) -> TensorDict:
+        """The minibatch followed by its mirror image (what the loss reads, nothing else).
+
+        The image keeps the original's advantage, value target, old value and old log-probability:
+        the mirrored fall is as good as the fall, and its action is taken as having been as likely
+        (exactly so for a symmetric collecting policy, its std included), as rsl_rl's symmetry augmentation does.
+        """
+        keys = self.loss.tensor_keys
+        shared = [k for k in (keys.advantage, keys.value_target, keys.value, keys.sample_log_prob) if k in data.keys()]
+        original = data.select("policy", "critic", keys.action, *shared)
+        image = original.clone(recurse=False)
+        image.set("policy", self.mirror.actor(original["policy"]))
+        image.set("critic", self.mirror.critic(original["critic"]))
+        image.set(keys.action, self.mirror.action(original[keys.action]))
+        return torch.cat([original, image], dim=0)
 
     def state_dict(self) -> dict:
         return {"optimizer": self.optimizer.state_dict(), "learning_rate": self.learning_rate}

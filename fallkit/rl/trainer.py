@@ -31,6 +31,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from fallkit.config import FallkitConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
+from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
@@ -56,6 +57,8 @@ class Trainer:
         seed = config.seed + 1_000_003 * self.rank
         torch.manual_seed(seed)
         self.spec = robot_spec(config.robot)
+        # before anything is built: a robot without a mirror map is a one-line config error
+        mirror = observation_mirror(self.spec) if tc.ppo.mirror else None
         self.env = make_env(config, self.spec, split="train", seed=seed)
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
@@ -65,7 +68,7 @@ class Trainer:
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
-        self.ppo = PPO(self.actor, self.critic, tc.ppo)
+        self.ppo = PPO(self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None)
         self.shuffle = torch.Generator().manual_seed(seed)
         self.iteration, self.start = 0, 0
         self.td: TensorDict | None = None  # the next collection's input
@@ -126,7 +129,7 @@ class Trainer:
         self._share_cores()
         torch.set_num_threads(self.update_threads)
         stats = self.ppo.update(batch, generator=self.shuffle)
-        _update_normalizers(self.actor, self.critic, batch)
+        _update_normalizers(self.actor, self.critic, batch, self.ppo.mirror)
         torch.set_num_threads(self.collect_threads)
         return stats
 
@@ -205,7 +208,7 @@ class Trainer:
         td = self.env.reset()
         self.env.stagger_episodes()
         # statistics from the first observations, so the first update is not on raw scales
-        _update_normalizers(self.actor, self.critic, td)
+        _update_normalizers(self.actor, self.critic, td, self.ppo.mirror)
         return td
 
     def _say_why_it_stopped(self, signal_name: str | None) -> None:
@@ -263,9 +266,15 @@ def collect(env: FallEnv, actor, td: TensorDict, num_steps: int) -> tuple[Tensor
     return torch.stack(steps, dim=1), td
 
 
-def _update_normalizers(actor, critic, batch: TensorDict) -> None:
+def _update_normalizers(actor, critic, batch: TensorDict, mirror: ObservationMirror | None = None) -> None:
+    """The batch into the running statistics; with mirror augmentation its mirror image too, so the
+    statistics are symmetric and a mirrored fall is normalised as the mirror image of the original."""
     for norm, key in ((policy_net(actor).norm, "policy"), (value_net(critic).norm, "critic")):
-        norm.update(batch[key])
+        obs = batch[key]
+        if mirror is not None:
+            flip = mirror.actor if key == "policy" else mirror.critic
+            obs = torch.cat([obs, flip(obs)])
+        norm.update(obs)
         if distributed():  # average the statistics so every rank normalises alike
             stats = torch.cat([norm.mean, norm.var, norm.count.reshape(1)])
             dist.all_reduce(stats)

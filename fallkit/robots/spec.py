@@ -30,6 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fallkit.errors import RobotSpecError
+from fallkit.robots.mirror import MirrorMap, derive_mirror
 
 log = logging.getLogger(__name__)
 _WARNED: set[tuple[str, str]] = set()  # (robot, mjcf) whose dropped scene elements were reported
@@ -232,7 +233,7 @@ class RobotSpec(BaseModel):
         instance dict, cached properties included: a new `mjcf` would keep the old model)."""
         copy = super().model_copy(update=update, deep=deep)
         if update:
-            for cached in ("_compiled_model", "_joint_limits"):
+            for cached in ("_compiled_model", "_joint_limits", "_mirror"):
                 copy.__dict__.pop(cached, None)
         return copy
 
@@ -259,6 +260,21 @@ class RobotSpec(BaseModel):
     def joint_limits(self) -> np.ndarray:
         """[n_joints, 2] lower/upper limits in policy order (±π where unlimited)."""
         return self._joint_limits
+
+    @property
+    def mirror_map(self) -> MirrorMap | None:
+        """The left–right mirror map (joints, bodies, MuJoCo state), derived from names and checked on the
+        model (fallkit.robots.mirror); None when the robot is not mirror-symmetric (`mirror_reason`)."""
+        return self._mirror if isinstance(self._mirror, MirrorMap) else None
+
+    @property
+    def mirror_reason(self) -> str | None:
+        """Why the robot has no mirror map, in one line (None when it has one)."""
+        return self._mirror if isinstance(self._mirror, str) else None
+
+    @cached_property
+    def _mirror(self) -> MirrorMap | str:
+        return derive_mirror(self)
 
     def nominal_q(self) -> np.ndarray:
         """Nominal pose as a vector in policy order (0 for joints it does not name)."""
