@@ -1,4 +1,5 @@
-"""Per-episode domain randomisation (issue 14, B3): friction the critic sees, PD strength, action delay."""
+"""Per-episode domain randomisation (issue 14, B3): friction the critic sees, PD strength, action delay,
+link masses, joint damping and armature."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from fallkit.sim import make_sim
 
 RANDOM = {"friction": {"enabled": True, "low": 0.3, "high": 1.5}, "gain_scale": {"enabled": True, "low": 0.5, "high": 1.5},
           "action_delay": 0.5}  # fmt: skip
+DYNAMICS = {"mass": {"enabled": True, "low": 0.7, "high": 1.3}, "joint_damping": {"enabled": True, "low": 0.5, "high": 2.0},
+            "armature": {"enabled": True, "low": 0.8, "high": 1.2}}  # fmt: skip
 
 
 def _env(spec, randomization: dict | None, n: int = 8, seed: int = 0) -> FallEnv:
@@ -65,10 +68,58 @@ def test_randomisation_is_off_by_default_and_in_evaluation(biped):
     config = FallkitConfig(robot=RobotConfig(name="biped20"), env={"randomization": RANDOM})
     assert not eval_run_config(config, None).env.randomization.friction.enabled
     assert eval_run_config(config, None).env.randomization.action_delay == 0
+    config = FallkitConfig(robot=RobotConfig(name="biped20"), env={"randomization": DYNAMICS})
+    assert not any(getattr(eval_run_config(config, None).env.randomization, n).enabled for n in DYNAMICS)
+
+
+def _lying_on_the_back(biped, n: int):
+    checker = PoseChecker(biped)
+    quat = torch.tensor(root_quat_from_pitch_roll(-math.pi / 2, 0.0))[None].expand(n, 4)
+    qpos, _ = checker.on_ground(quat, torch.tensor(biped.nominal_q())[None].expand(n, -1), 0.0)
+    return qpos, torch.zeros(n, checker.layout.nv, dtype=torch.float64)
+
+
+def test_masses_reach_the_dynamics(biped):
+    """Robots lying still carry their own weight: half and double the masses, half and double the force."""
+    sim = make_sim(biped, 3, "mujoco")
+    qpos, qvel = _lying_on_the_back(biped, 3)
+    nbody = sim.model.nbody
+    sim.set_mass_scale(torch.arange(3), torch.tensor([0.5, 1.0, 2.0])[:, None].expand(3, nbody))
+    sim.reset(torch.arange(3), qpos, qvel)
+    hold = sim.state.joint_pos.clone()
+    for _ in range(100):  # 2 s: at rest
+        state = sim.step(hold)
+    weight = float(sim.model.body_mass.sum()) * 9.81
+    force = state.contact_force[:, -1, :, 2].sum(-1)  # vertical, last substep, every component
+    torch.testing.assert_close(force, torch.tensor([0.5, 1.0, 2.0]) * weight, rtol=0.03, atol=0.0)
+
+
+def test_joint_damping_and_armature_reach_the_dynamics(biped):
+    """Zero torque, arms swinging at 3 rad/s: more damping and more armature both slow them sooner."""
+    sim = make_sim(biped, 3, "mujoco")
+    qpos, qvel = _lying_on_the_back(biped, 3)
+    arm = 6 + biped.joint_names.index("left_shoulder_pitch")  # dof index after the free joint
+    qvel[:, arm] = 3.0
+    sim.set_gain_scale(torch.zeros(3))
+    sim.set_joint_scale(torch.arange(3), torch.tensor([1.0, 50.0, 1.0]), torch.tensor([1.0, 1.0, 40.0]))
+    sim.reset(torch.arange(3), qpos, qvel)
+    state = sim.step(sim.state.joint_pos.clone())
+    change = (state.joint_vel[:, arm - 6] - 3.0).abs()  # after one policy step (20 ms)
+    assert change[1] > 2.0 * change[0], change  # 50x the damping brakes the swing harder
+    assert change[2] < 0.5 * change[0], change  # 40x the rotor inertia: every torque moves it less
+
+
+def test_dynamics_randomisation_is_refused_on_warp():
+    from helpers import composed_config
+
+    from fallkit.config import ConfigError
+
+    with pytest.raises(ConfigError, match="env.randomization.mass: randomised on sim=mujoco only so far"):
+        composed_config("sim=warp", "env.randomization.mass.enabled=true")
 
 
 def test_a_randomised_run_resumes_exactly(biped):
-    a = _env(biped, RANDOM, seed=3)
+    a = _env(biped, {**RANDOM, **DYNAMICS}, seed=3)
     td = a.reset()
     g = torch.Generator().manual_seed(0)
     actions = [torch.randn(8, len(biped.joints), generator=g) * 0.3 for _ in range(6)]
@@ -76,13 +127,15 @@ def test_a_randomised_run_resumes_exactly(biped):
         td = a.step_and_maybe_reset(td.set("action", act))[1]
     state = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in a.run_state().items()}
     first = [a.step(td.set("action", act))["next", "critic"].clone() for act in actions[3:]]
-    b = _env(biped, RANDOM, seed=99)
+    b = _env(biped, {**RANDOM, **DYNAMICS}, seed=99)
     b.reset()
     b.load_run_state(state)
     second = [b.step(td.set("action", act))["next", "critic"].clone() for act in actions[3:]]
     for x, y in zip(first, second):
         torch.testing.assert_close(x, y)
     torch.testing.assert_close(b.randomization.friction, a.randomization.friction)
+    torch.testing.assert_close(b.randomization.mass_scale, a.randomization.mass_scale)
+    assert a.randomization.mass_scale.std() > 0.05 and a.randomization.damping_scale.std() > 0.05
 
 
 def test_ranges_are_checked():

@@ -82,6 +82,17 @@ def validate(raw: dict[str, Any]) -> FallkitConfig:
     except ValidationError as exc:
         raise ConfigError("; ".join(_describe(e) for e in exc.errors())) from None
 
+    @model_validator(mode="after")
+    def _dynamics_randomised_on_mujoco(self) -> "FallkitConfig":
+        r = self.env.randomization
+        on = [n for n in ("mass", "joint_damping", "armature") if getattr(r, n).enabled]
+        if on and self.sim.backend == "warp":
+            raise ValueError(
+                f"env.randomization.{on[0]}: randomised on sim=mujoco only so far (mujoco_warp would need its "
+                f"derived constants per world); switch it off or use sim=mujoco"
+            )
+        return self
+
 
 def _describe(error: dict[str, Any]) -> str:
     key = ".".join(str(p) for p in error["loc"])

@@ -96,6 +96,18 @@ class RandomizationConfig(Section):
     action_delay: float = Field(
         0.0, ge=0, le=1, description="chance that an episode applies every action one policy step late (0 = never)"
     )
+    mass: RandomRange = Field(
+        default_factory=lambda: RandomRange(low=0.8, high=1.2),
+        description="every link's mass and rotational inertia × its own factor: payload, CAD error (sim=mujoco)",
+    )
+    joint_damping: RandomRange = Field(
+        default_factory=lambda: RandomRange(low=0.5, high=2.0),
+        description="every joint's viscous damping × this: gearbox friction (sim=mujoco)",
+    )
+    armature: RandomRange = Field(
+        default_factory=lambda: RandomRange(low=0.8, high=1.2),
+        description="every joint's armature (reflected rotor inertia) × this (sim=mujoco)",
+    )
 
 
 class EnvConfig(Section):

@@ -8,9 +8,14 @@ enabled (so a run without randomisation draws exactly the numbers it drew before
   gain_scale    the PD gains kp, kd × a factor: actuator strength
   action_delay  with this chance, an episode applies each action one policy step late
                 (the setpoint of a_{t−1}), a controller a step behind its estimator
+  mass          every link's mass and rotational inertia × its own factor (MuJoCo's derived
+                constants recomputed per world: mj_setConst)
+  joint_damping every joint's viscous damping × a factor
+  armature      every joint's armature × a factor
 
 Evaluation switches every one off (fallkit.eval.evaluate.eval_run_config), as it does noise
-and disturbances. Not randomised yet: link masses, joint damping and armature.
+and disturbances. Masses, damping and armature are per world on the MuJoCo C backend only
+(the warp backend refuses them, see fallkit.sim.warp_sim).
 """
 
 from __future__ import annotations
@@ -30,11 +35,19 @@ class EpisodeRandomization:
         self.friction = torch.full((n, 1), float(base_friction), dtype=torch.float32, device=device)
         self.gain_scale = torch.ones(n, dtype=torch.float32, device=device)
         self.delayed = torch.zeros(n, dtype=torch.bool, device=device)
+        self.mass_scale = torch.ones(n, sim.model.nbody, dtype=torch.float32, device=device)
+        self.damping_scale = torch.ones(n, dtype=torch.float32, device=device)
+        self.armature_scale = torch.ones(n, dtype=torch.float32, device=device)
 
     @property
     def active(self) -> bool:
         c = self.config
-        return c.friction.enabled or c.gain_scale.enabled or c.action_delay > 0
+        return c.friction.enabled or c.gain_scale.enabled or c.action_delay > 0 or self._dynamics
+
+    @property
+    def _dynamics(self) -> bool:
+        c = self.config
+        return c.mass.enabled or c.joint_damping.enabled or c.armature.enabled
 
     def reset(self, ids: torch.Tensor, generator: torch.Generator) -> None:
         """Draw the quantities of worlds `ids` and hand them to the simulator."""
@@ -48,6 +61,16 @@ class EpisodeRandomization:
         if c.action_delay > 0:
             draw = torch.rand(k, generator=generator, device=self.delayed.device)
             self.delayed[ids] = draw < c.action_delay
+        if c.mass.enabled:
+            b = self.mass_scale.shape[1]
+            self.mass_scale[ids] = _uniform(c.mass, k * b, generator, self.mass_scale.device).view(k, b)
+            self.sim.set_mass_scale(ids, self.mass_scale[ids])
+        if c.joint_damping.enabled:
+            self.damping_scale[ids] = _uniform(c.joint_damping, k, generator, self.damping_scale.device)
+        if c.armature.enabled:
+            self.armature_scale[ids] = _uniform(c.armature, k, generator, self.armature_scale.device)
+        if c.joint_damping.enabled or c.armature.enabled:
+            self.sim.set_joint_scale(ids, self.damping_scale[ids], self.armature_scale[ids])
 
     def applied(self, action: torch.Tensor, last_action: torch.Tensor) -> torch.Tensor:
         """The action the simulator receives: the previous one in delayed worlds."""
@@ -56,17 +79,26 @@ class EpisodeRandomization:
         return torch.where(self.delayed.view(-1, 1), last_action, action)
 
     def state(self) -> dict[str, torch.Tensor]:
-        return {"friction": self.friction.clone(), "gain_scale": self.gain_scale.clone(), "delayed": self.delayed.clone()}
+        names = ("friction", "gain_scale", "delayed", "mass_scale", "damping_scale", "armature_scale")
+        return {name: getattr(self, name).clone() for name in names}
 
     def load(self, state: dict[str, torch.Tensor]) -> None:
         """Restore state() and hand it to the simulator again."""
         self.friction.copy_(state["friction"])
         self.gain_scale.copy_(state["gain_scale"])
         self.delayed.copy_(state["delayed"])
-        if self.config.friction.enabled:
+        for name in ("mass_scale", "damping_scale", "armature_scale"):
+            if name in state:  # checkpoints written before these were randomised hold none
+                getattr(self, name).copy_(state[name])
+        c, every = self.config, torch.arange(self.sim.num_worlds, device=self.friction.device)
+        if c.friction.enabled:
             self.sim.set_friction(self.friction[:, 0])
-        if self.config.gain_scale.enabled:
+        if c.gain_scale.enabled:
             self.sim.set_gain_scale(self.gain_scale)
+        if c.mass.enabled:
+            self.sim.set_mass_scale(every, self.mass_scale)
+        if c.joint_damping.enabled or c.armature.enabled:
+            self.sim.set_joint_scale(every, self.damping_scale, self.armature_scale)
 
 
 def _uniform(r: RandomRange, k: int, generator: torch.Generator, device: torch.device) -> torch.Tensor:

@@ -97,6 +97,14 @@ class BatchSim(Protocol):
         """Sliding friction of every geom, per world ([N]): every contact's coefficient (MuJoCo
         takes the larger of the two geoms'), until changed."""
 
+    def set_mass_scale(self, ids: torch.Tensor, scale: torch.Tensor) -> None:
+        """Worlds `ids`: every body's mass and rotational inertia = the model's × scale [len(ids), nbody],
+        with the constants MuJoCo derives from them (mj_setConst) recomputed, until changed."""
+
+    def set_joint_scale(self, ids: torch.Tensor, damping: torch.Tensor, armature: torch.Tensor) -> None:
+        """Worlds `ids`: every dof's viscous damping and armature = the model's × damping, armature
+        [len(ids)] (armature with mj_setConst's derived constants), until changed."""
+
     def state_dict(self) -> dict:
         """The full physics state of all worlds, so a resumed run continues exactly."""
 

@@ -58,6 +58,7 @@ class MujocoSim:
         self._torque = b.bind("actuator_force")
         self._warning = b.warning
         self._friction: np.ndarray | None = None  # per-world geom friction, once randomised
+        self._mass = self._inertia = self._damping = self._armature = None  # per world, once randomised
         self._base_kp = self.model.actuator_gainprm[:, 0].copy()
         self._base_kd = -self.model.actuator_biasprm[:, 2].copy()
         self._gainprm = None  # expanded per world on first gain change (shared until then)
@@ -118,6 +119,22 @@ class MujocoSim:
         self._gainprm[:, :, 0] = self._base_kp * s
         self._biasprm[:, :, 1] = -self._base_kp * s
         self._biasprm[:, :, 2] = -self._base_kd * s
+
+    def set_mass_scale(self, ids: torch.Tensor, scale: torch.Tensor) -> None:
+        if self._mass is None:  # per world from now on
+            self._mass, self._inertia = self.batch.expand("body_mass"), self.batch.expand("body_inertia")
+        rows, s = _rows(ids), np.asarray(scale.detach().cpu(), dtype=np.float64)
+        self._mass[rows] = self.model.body_mass * s
+        self._inertia[rows] = self.model.body_inertia * s[..., None]
+        self.batch.set_const(rows)  # inverse weights, subtree masses … follow the new masses
+
+    def set_joint_scale(self, ids: torch.Tensor, damping: torch.Tensor, armature: torch.Tensor) -> None:
+        if self._damping is None:
+            self._damping, self._armature = self.batch.expand("dof_damping"), self.batch.expand("dof_armature")
+        rows = _rows(ids)
+        self._damping[rows] = self.model.dof_damping * np.asarray(damping.detach().cpu(), np.float64)[:, None]
+        self._armature[rows] = self.model.dof_armature * np.asarray(armature.detach().cpu(), np.float64)[:, None]
+        self.batch.set_const(rows)  # armature enters the derived inverse weights
 
     def set_friction(self, friction: torch.Tensor) -> None:
         if self._friction is None:
@@ -205,3 +222,7 @@ class MujocoSim:
             body_pos=torch.tensor(self._xpos, dtype=torch.float32) if self.body_state else None,
             body_vel=torch.tensor(self._cvel, dtype=torch.float32) if self.body_state else None,
         )
+
+
+def _rows(ids: torch.Tensor) -> np.ndarray:
+    return np.asarray(ids.detach().cpu(), dtype=np.int64)

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from fallkit.errors import SimBufferError
+from fallkit.errors import ConfigError, SimBufferError
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import Layout, SimState
 from fallkit.sim.warp_setup import (
@@ -51,6 +51,10 @@ from fallkit.sim.warp_setup import (
 )
 
 log = logging.getLogger(__name__)
+
+# Per-world masses and armature need mujoco_warp's derived constants per world too (set_const over
+# batched derived fields), which fallkit has not measured on a GPU yet: refused, not approximated.
+_NOT_ON_WARP = "env.randomization.{}: randomised on sim=mujoco only so far; switch it off or use sim=mujoco"
 
 
 # ---- our own kernels, launched between mujoco_warp's -------------------------------------------
@@ -205,6 +209,12 @@ class WarpSim:
         self._gainprm[:, :, 0] = self._base_kp * s
         self._biasprm[:, :, 1] = -self._base_kp * s
         self._biasprm[:, :, 2] = -self._base_kd * s
+
+    def set_mass_scale(self, ids: torch.Tensor, scale: torch.Tensor) -> None:
+        raise ConfigError(_NOT_ON_WARP.format("mass"))
+
+    def set_joint_scale(self, ids: torch.Tensor, damping: torch.Tensor, armature: torch.Tensor) -> None:
+        raise ConfigError(_NOT_ON_WARP.format("joint_damping / armature"))
 
     def set_friction(self, friction: torch.Tensor) -> None:
         self._geom_friction[:, :, 0] = friction.detach().to(self.device, torch.float32).reshape(-1, 1)
