@@ -26,11 +26,12 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from fallkit import registry
 from fallkit.config import FallkitConfig, defaults, validate
-from fallkit.errors import FallkitError, PluginError
+from fallkit.errors import ConfigError, FallkitError, PluginError
 from fallkit.machine import running
 from fallkit.robots import GROUP as ROBOTS
 from fallkit.robots import get_robot
@@ -186,6 +187,11 @@ def run(cfg: DictConfig) -> Any:
         if config.resume and config.mode == "train":
             config = _resume(config, raw)
             raw = {**raw, **config.model_dump(mode="json")}
+        if config.experiment and HydraConfig.get().mode != RunMode.MULTIRUN:
+            raise ConfigError(
+                f"experiment={config.experiment} is a sweep of runs with a report: add -m "
+                f"(python -m fallkit -m experiment={config.experiment})"
+            )
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "resolved_config.yaml").write_text(OmegaConf.to_yaml(raw))

@@ -41,6 +41,9 @@ class FallkitConfig(Section):
     seed: int = 0
     checkpoint: str | None = Field(None, description="a trained policy (file or run dir) for eval/render/export")
     resume: str | None = Field(None, description="continue training from this checkpoint or run dir")
+    experiment: str | None = Field(
+        None, description="the paper experiment this run is a job of (set by experiment=<name>; fallkit.experiments)"
+    )
     robot: RobotConfig
     sim: SimConfig = Field(default_factory=SimConfig)
     env: EnvConfig = Field(default_factory=EnvConfig)

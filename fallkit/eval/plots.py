@@ -21,14 +21,14 @@ from fallkit.eval.metrics import TrialMetrics  # noqa: E402
 COLORS = {"policy": "#2a7ab0", "zero_torque": "#8c8c8c", "damping": "#e0a030", "freeze": "#c0392b"}
 
 
-def _color(name: str) -> str:
+def strategy_color(name: str) -> str:
     return COLORS.get(name, "#6a3d9a")
 
 
-def _boxplot(ax, data: list[np.ndarray], names: list[str], ylabel: str, title: str) -> None:
+def boxplot(ax, data: list[np.ndarray], names: list[str], ylabel: str, title: str) -> None:
     box = ax.boxplot(data, showfliers=True, patch_artist=True, widths=0.6, flierprops={"markersize": 2, "alpha": 0.4})
     for patch, name in zip(box["boxes"], names):
-        patch.set_facecolor(_color(name))
+        patch.set_facecolor(strategy_color(name))
         patch.set_alpha(0.75)
     for median in box["medians"]:
         median.set_color("black")
@@ -38,7 +38,7 @@ def _boxplot(ax, data: list[np.ndarray], names: list[str], ylabel: str, title: s
     ax.grid(axis="y", alpha=0.3)
 
 
-def _save(fig, path: Path, title: str) -> Path:
+def save_figure(fig, path: Path, title: str) -> Path:
     """Title, layout, PNG at 110 dpi, and close: the ending of every figure here."""
     if title:
         fig.suptitle(title)
@@ -58,17 +58,17 @@ def impact_boxplot(results: dict[str, TrialMetrics], path: Path, title: str = ""
         ("fall_mean_impact_force", "mean impact force, fall phase"),
     ]
     for ax, (key, label) in zip(axes, panels):
-        _boxplot(ax, [getattr(results[n], key) for n in names], names, "force [N]", label)
-    return _save(fig, path, title)
+        boxplot(ax, [getattr(results[n], key) for n in names], names, "force [N]", label)
+    return save_figure(fig, path, title)
 
 
 def tracking_boxplot(results: dict[str, TrialMetrics], path: Path, title: str = "") -> Path:
     """Box plots of the root orientation error (MROE) and joint error (MJE) per strategy."""
     names = list(results)
     fig, axes = plt.subplots(1, 2, figsize=(9, 4.2))
-    _boxplot(axes[0], [results[n].mroe for n in names], names, "[rad]", "root orientation error (MROE)")
-    _boxplot(axes[1], [results[n].mje for n in names], names, "[rad]", "joint error (MJE)")
-    return _save(fig, path, title)
+    boxplot(axes[0], [results[n].mroe for n in names], names, "[rad]", "root orientation error (MROE)")
+    boxplot(axes[1], [results[n].mje for n in names], names, "[rad]", "joint error (MJE)")
+    return save_figure(fig, path, title)
 
 
 def component_impact(results: dict[str, TrialMetrics], components: list[str], path: Path, title: str = "") -> Path:
@@ -80,13 +80,13 @@ def component_impact(results: dict[str, TrialMetrics], components: list[str], pa
     for ax, (q, label) in zip(axes, [(50, "median"), (95, "95th percentile")]):
         for i, n in enumerate(names):
             v = np.percentile(results[n].component_max_force, q, axis=0)
-            ax.bar(x + (i - (len(names) - 1) / 2) * width, v, width, label=n.replace("_", " "), color=_color(n))
+            ax.bar(x + (i - (len(names) - 1) / 2) * width, v, width, label=n.replace("_", " "), color=strategy_color(n))
         ax.set_xticks(x, components)
         ax.set_ylabel("max impact force [N]")
         ax.set_title(f"per component: {label} over trials")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
 
 
 def plot_all(results: dict[str, TrialMetrics], components: list[str], out_dir: Path, title: str = "") -> list[Path]:
@@ -131,4 +131,4 @@ def learning_curve(metrics_csv: Path, path: Path, title: str = "") -> Path:
     axes[2].legend(fontsize=7, ncol=2)
     for ax in axes:
         ax.grid(alpha=0.3)
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
