@@ -48,6 +48,7 @@ MODES: dict[str, str] = {
     "render": "fallkit.eval.render:run_render",
     "poses": "fallkit.eval.dataset_report:run_poses",
     "sim2sim": "fallkit.deploy.sim2sim:run_sim2sim",
+    "warmup": "fallkit.env.warmup:run_warmup",
 }
 
 

@@ -31,7 +31,7 @@ __all__ = [
     "RewardConfig", "RobotConfig", "SettleConfig", "SimConfig", "TrainConfig", "defaults", "validate",
 ]  # fmt: skip
 
-Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim"]
+Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim", "warmup"]
 
 
 class FallkitConfig(Section):

@@ -10,11 +10,15 @@ run the same kernels.
 from __future__ import annotations
 
 import gc
+import logging
 import math
 import os
 import re
+import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -22,6 +26,8 @@ import torch
 import warp as wp
 
 from fallkit.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 _warp_ready = False
 
@@ -48,6 +54,72 @@ def init_warp():
             wp._src.build.init_kernel_cache(path)
         _warp_ready = True
     return wp
+
+
+def _cached_modules(cache: Path) -> set[str]:
+    """Names of the compiled modules in Warp's kernel cache (one folder per module variant)."""
+    return {p.name for p in cache.glob("*/wp_*") if p.is_dir()} if cache.is_dir() else set()
+
+
+@dataclass
+class Prepared:
+    """What `preparing_kernels` did: its time and the modules it compiled (the rest were loaded)."""
+
+    seconds: float = 0.0
+    compiled: int = 0
+
+
+@contextmanager
+def preparing_kernels(what: str, device: str, notice_after: float = 3.0, every: float = 20.0) -> Iterator[Prepared]:
+    """Say what Warp is doing while it prepares `what`'s kernels on `device`.
+
+    Loading cached kernels takes seconds and says nothing loud. Compiling them (the first run on a
+    machine, or after a Warp or model change) takes minutes, and Warp itself prints nothing at the
+    log level fallkit uses: so once compiled modules have started to appear in the cache and the
+    preparation has run `notice_after` seconds, one line says what is compiled, roughly how long it
+    takes and where the cache goes, then a progress line every `every` seconds (modules compiled so
+    far), and one line when it is done.
+    """
+    init_warp()
+    cache = warp_cache_dir()
+    before = _cached_modules(cache)
+    start = time.perf_counter()
+    done = threading.Event()
+    noticed = threading.Event()
+
+    def compiled() -> int:
+        return len(_cached_modules(cache) - before)
+
+    def watch() -> None:
+        # a warm start only loads: it never adds a module, so it never hears of compiling
+        while not done.wait(min(0.5, notice_after)):
+            if compiled() and time.perf_counter() - start >= notice_after:
+                break
+        else:
+            return
+        noticed.set()
+        log.warning(
+            "warp: compiling %s's kernels for %s (once per machine and Warp version: about 1-3 min on a "
+            "CPU, several minutes on a GPU) into %s; later runs load them in seconds "
+            "(python -m fallkit mode=warmup sim=warp fills the cache ahead)", what, device, cache,
+        )  # fmt: skip
+        while not done.wait(every):
+            log.warning("warp: still compiling: %d modules so far, %.0f s", compiled(), time.perf_counter() - start)
+
+    watcher = threading.Thread(target=watch, name="warp-compile-notice", daemon=True)
+    watcher.start()
+    prepared = Prepared()
+    try:
+        yield prepared
+    finally:
+        done.set()
+        watcher.join()
+        prepared.seconds = time.perf_counter() - start
+        prepared.compiled = compiled()
+        (log.warning if noticed.is_set() else log.info)(
+            "warp: %s's kernels ready on %s in %.1f s (%d modules compiled, the rest loaded from %s)",
+            what, device, prepared.seconds, prepared.compiled, cache,
+        )  # fmt: skip
 
 
 def resolve_device(device: str) -> str:

@@ -45,6 +45,7 @@ from fallkit.sim.warp_setup import (
     init_warp,
     no_gc,
     overflow_advice,
+    preparing_kernels,
     put_warp_model,
     resolve_device,
     use_graphs,
@@ -155,9 +156,10 @@ class WarpSim:
         self.njmax = njmax or default_nj
         self._buffer_bits = buffer_overflow_bits()
 
-        with wp.ScopedDevice(self._wp_device):
-            self._put_on_device()
-        self._capture_graphs()
+        with preparing_kernels(spec.name, str(self.device)) as self.prepared:  # a machine's first run compiles
+            with wp.ScopedDevice(self._wp_device):
+                self._put_on_device()
+            self._capture_graphs()
         self._state = self._read(torch.zeros(num_worlds, dtype=torch.bool, device=self.device))
         self._write_rows(torch.arange(num_worlds, device=self.device))
 
