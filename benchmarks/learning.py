@@ -14,7 +14,7 @@ eval.json and reports, per metric, the policy's mean over the best standard stra
 "seek" — setpoints blended from the fall's starting joints to the target joints by u(t),
 no learning — is reported beside them as a reference, never counted as a strategy.
 
-    python benchmarks/learning.py [--minutes 15] [--backend mujoco|warp] [--seeds 1] [-- key=value …]
+    python benchmarks/learning.py [--minutes 15] [--backend mujoco|warp] [--seeds 1] [--first-seed 0] [-- key=value …]
 
 Extra Hydra overrides after `--` go to the training (e.g. `-- train.init_noise_std=0.5`), so
 every change is measured the same way. The last line is one JSON object.
@@ -80,7 +80,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--minutes", type=float, default=15.0, help="training budget per seed")
     p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
-    p.add_argument("--seeds", type=int, default=1, help="seeds 0 … n-1, one training each")
+    p.add_argument("--seeds", type=int, default=1, help="how many seeds, one training each")
+    p.add_argument("--first-seed", type=int, default=0, help="seeds first … first + n − 1 (a second seed of a row)")
     p.add_argument("--envs", type=int, default=0, help="sim.num_envs (default: train=quick's 256; warp 4096)")
     p.add_argument("--trials", type=int, default=256, help="evaluation falls per strategy")
     p.add_argument("--out", default="runs/learning", help="run directories go here")
@@ -88,7 +89,7 @@ def main() -> None:
     args = p.parse_args()
 
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    runs = [train_and_evaluate(args, s, Path(args.out) / stamp / f"seed{s}") for s in range(args.seeds)]
+    runs = [train_and_evaluate(args, s, Path(args.out) / stamp / f"seed{s}") for s in range(args.first_seed, args.first_seed + args.seeds)]
     per_seed = [{**all_ratios(r["eval"]), "seed": r["seed"], "iterations": r["iterations"]} for r in runs]
     result = {k: statistics.median(r[k] for r in per_seed) for k in per_seed[0] if k not in ("seed", "iterations")}
     result.update(

@@ -1,15 +1,19 @@
-"""What the framework adds to the irreducible work of a PPO iteration (issue 6).
+"""What the framework adds to the irreducible work of a PPO iteration (issues 6 and 15).
 
-Measures, in one run, on the CPU backend:
-  iteration   wall time of a real training iteration (collect num_envs x num_steps with
-              the policy + PPO update + normaliser update), as fallkit.rl.trainer runs it
-  simulation  the same number of env steps in pure simulation: MujocoSim.step with the
-              nominal pose held, no policy, no env, no TensorDicts
+Measures, in one run, per world count, on either backend:
+  iteration   wall time of a real training iteration, as fallkit.rl.trainer runs it, split
+              into collection (num_envs x num_steps with the policy) and the PPO update
+              (+ normaliser update)
+  simulation  the same number of env steps in pure simulation: the backend's sim.step with
+              the nominal pose held, no policy, no env, no TensorDicts
   update      the same PPO update (same networks, epochs, minibatches) on random data of
               the same shapes
-  ratio       iteration / (simulation + update)   — target <= 1.3
+and the ratios: iteration / (simulation + update) (CPU target <= 1.3), collection / simulation
+(`collect_over_sim`, GPU target <= 1.4) and the update's share of an iteration (`update_share`,
+GPU target <= 0.25), with env steps per second. On a GPU every phase ends on a device sync.
 
     python benchmarks/train_throughput.py [--envs 256] [--steps 24] [--hidden 256] [--iterations 3]
+    python benchmarks/train_throughput.py --backend warp --device cuda:0 --envs 4096 16384   # issue 15
 """
 
 from __future__ import annotations
@@ -27,39 +31,35 @@ from tensordict import TensorDict
 from fallkit.app import register_configs
 from fallkit.config import validate
 from fallkit.env.build import make_env
+from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.rl.models import joint_prior, make_actor, make_critic
 from fallkit.rl.ppo import PPO
 from fallkit.rl.trainer import collect
 from fallkit.robots import robot_spec
-from fallkit.sim import make_sim
+from fallkit.sim import make_sim, sim_options
 
 
-def config_for(args):
+def config_for(args, envs: int):
+    """train=quick on the CPU backend; train=default (Table III networks) with sim=warp."""
     register_configs()
+    preset = ["train=quick"] if args.backend == "mujoco" else ["train=default", "sim=warp", f"sim.device={args.device}"]
+    hidden = ",".join([str(args.hidden)] * 3)
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
         cfg = compose(
             config_name="config",
-            overrides=[
-                "train=quick",
-                f"sim.num_envs={args.envs}",
-                f"train.num_steps={args.steps}",
-                f"train.actor_hidden=[{args.hidden},{args.hidden},{args.hidden}]",
-                f"train.critic_hidden=[{args.hidden},{args.hidden},{args.hidden}]",
-            ],
-        )
+            overrides=[*preset, f"sim.num_envs={envs}", f"train.num_steps={args.steps}",
+                       f"train.actor_hidden=[{hidden}]", f"train.critic_hidden=[{hidden}]"],
+        )  # fmt: skip
     raw = OmegaConf.to_container(cfg, resolve=False)
     raw.pop("hydra", None)
     return validate(raw)
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--envs", type=int, default=256)
-    p.add_argument("--steps", type=int, default=24)
-    p.add_argument("--hidden", type=int, default=256)
-    p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
-    args = p.parse_args()
-    config = config_for(args)
+def measure(args, envs: int) -> dict:
+    """The three timings and their ratios for one world count."""
+    config = config_for(args, envs)
+    gpu = config.sim.backend == "warp" and args.device.startswith("cuda")
+    sync = torch.cuda.synchronize if gpu else (lambda: None)
     # as fallkit.rl.trainer: one torch thread while MuJoCo collects, all cores for the update
     update_threads = config.train.torch_threads or os.cpu_count() or 1
     torch.set_num_threads(1)
@@ -68,80 +68,116 @@ def main() -> None:
 
     # --- a real iteration ---------------------------------------------------------------
     env = make_env(config, spec, "train", seed=0)
+    device = env.device
     obs_dim = env.observation_spec["policy"].shape[-1]
     critic_dim = env.observation_spec["critic"].shape[-1]
     act_dim = env.action_spec.shape[-1]
-    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, joint_prior(config, spec))
-    critic = make_critic(critic_dim, tc.critic_hidden)
+    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, joint_prior(config, spec)).to(device)
+    critic = make_critic(critic_dim, tc.critic_hidden).to(device)
     ppo = PPO(actor, critic, tc.ppo)
     td = env.reset()
 
     def iteration(td):
+        sync()
+        t0 = time.perf_counter()
         batch, td = collect(env, actor, td, tc.num_steps)
+        sync()
+        t1 = time.perf_counter()
         torch.set_num_threads(update_threads)
         ppo.update(batch)
         actor.module[0].module.norm.update(batch["policy"])
         critic.module.norm.update(batch["critic"])
         torch.set_num_threads(1)
-        return td, batch
+        sync()
+        return td, t1 - t0, time.perf_counter() - t1
 
-    td, batch = iteration(td)  # warm-up
-    t = time.perf_counter()
+    td, _, _ = iteration(td)  # warm-up
+    collect_s = update_s = 0.0
     for _ in range(args.iterations):
-        td, batch = iteration(td)
-    t_iter = (time.perf_counter() - t) / args.iterations
+        td, c, u = iteration(td)
+        collect_s, update_s = collect_s + c / args.iterations, update_s + u / args.iterations
+    t_iter = collect_s + update_s
 
     # --- pure simulation of the same env steps -------------------------------------------
-    sim = make_sim(spec, args.envs, "mujoco", threads=config.sim.threads)
-    from fallkit.env.samplers.initial_state import InitialStateSampler
-
-    qpos, qvel = InitialStateSampler(spec).sample(args.envs, torch.Generator().manual_seed(0))
-    sim.reset(torch.arange(args.envs), qpos, qvel)
-    hold = torch.tensor(spec.nominal_q(), dtype=torch.float32).expand(args.envs, -1)
+    sim = make_sim(spec, envs, config.sim.backend, body_state=True, **sim_options(config.sim))
+    qpos, qvel = InitialStateSampler(spec).sample(envs, torch.Generator().manual_seed(0))
+    sim.reset(torch.arange(envs), qpos, qvel)
+    hold = torch.tensor(spec.nominal_q(), dtype=torch.float32, device=sim.device).expand(envs, -1)
+    sim.step(hold)
+    sync()
     t = time.perf_counter()
     for _ in range(args.iterations * tc.num_steps):
         sim.step(hold)
+    sync()
     t_sim = (time.perf_counter() - t) / args.iterations
 
     # --- the same update on random data ---------------------------------------------------
-    shape = (args.envs, tc.num_steps)
+    shape = (envs, tc.num_steps)
+    r = lambda *tail: torch.randn(*shape, *tail, device=device)  # noqa: E731
     fake = TensorDict(
         {
-            "policy": torch.randn(*shape, obs_dim),
-            "critic": torch.randn(*shape, critic_dim),
-            "action": torch.randn(*shape, act_dim),
-            "loc": torch.randn(*shape, act_dim),
-            "scale": torch.ones(*shape, act_dim),
-            "action_log_prob": torch.randn(*shape),
+            "policy": r(obs_dim), "critic": r(critic_dim), "action": r(act_dim), "loc": r(act_dim),
+            "scale": torch.ones(*shape, act_dim, device=device), "action_log_prob": r(),
             "next": {
-                "critic": torch.randn(*shape, critic_dim),
-                "reward": torch.randn(*shape, 1),
-                "done": torch.zeros(*shape, 1, dtype=torch.bool),
-                "terminated": torch.zeros(*shape, 1, dtype=torch.bool),
+                "critic": r(critic_dim), "reward": r(1),
+                "done": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
+                "terminated": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
             },
         },
-        batch_size=shape,
-    )
-    ppo2 = PPO(make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std), make_critic(critic_dim, tc.critic_hidden), tc.ppo)
+        batch_size=shape, device=device,
+    )  # fmt: skip
+    actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std).to(device)
+    ppo2 = PPO(actor2, make_critic(critic_dim, tc.critic_hidden).to(device), tc.ppo)
     torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())
+    sync()
     t = time.perf_counter()
     for _ in range(args.iterations):
         ppo2.update(fake.clone())
+    sync()
     t_update = (time.perf_counter() - t) / args.iterations
     torch.set_num_threads(1)
 
-    ratio = t_iter / (t_sim + t_update)
-    print(f"{args.envs} envs x {tc.num_steps} steps, actor/critic 3x{args.hidden}, {tc.ppo.epochs} epochs x {tc.ppo.num_minibatches} minibatches")
-    print(f"  training iteration      {t_iter:7.3f} s")
+    steps = envs * tc.num_steps
+    out = {
+        "envs": envs, "iteration_s": round(t_iter, 4), "collect_s": round(collect_s, 4),
+        "update_in_iteration_s": round(update_s, 4), "simulation_s": round(t_sim, 4), "update_s": round(t_update, 4),
+        "ratio": round(t_iter / (t_sim + t_update), 4), "collect_over_sim": round(collect_s / t_sim, 4),
+        "update_share": round(update_s / t_iter, 4), "env_steps_per_s": round(steps / t_iter),
+        "sim_env_steps_per_s": round(steps / t_sim),
+    }  # fmt: skip
+    print(f"{envs} envs x {tc.num_steps} steps on {config.sim.backend} ({device}), actor/critic 3x{args.hidden}, "
+          f"{tc.ppo.epochs} epochs x {tc.ppo.num_minibatches} minibatches")  # fmt: skip
+    print(f"  training iteration      {t_iter:7.3f} s  (collection {collect_s:.3f} s + update {update_s:.3f} s)")
     print(f"  pure simulation         {t_sim:7.3f} s")
     print(f"  PPO update, random data {t_update:7.3f} s")
-    print(f"  ratio iteration / (simulation + update) = {ratio:.3f} (target <= 1.3)")
-    print(json.dumps({
-        "envs": args.envs, "steps": tc.num_steps, "hidden": args.hidden,
-        "iteration_s": round(t_iter, 4), "simulation_s": round(t_sim, 4), "update_s": round(t_update, 4),
-        "ratio": round(ratio, 4),
-    }))  # fmt: skip
+    print(f"  iteration / (simulation + update) = {out['ratio']:.3f} (CPU target <= 1.3); collection / simulation "
+          f"= {out['collect_over_sim']:.2f} (GPU target <= 1.4); update share {out['update_share']:.2f} "
+          f"(GPU target <= 0.25); {out['env_steps_per_s']} env steps/s")  # fmt: skip
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
+    p.add_argument("--device", default="cuda:0", help="warp device (cuda:N, or cpu to try it here)")
+    p.add_argument("--envs", type=int, nargs="+", default=None, help="world counts (default: 256; warp 4096 16384)")
+    p.add_argument("--steps", type=int, default=24)
+    p.add_argument("--hidden", type=int, default=None, help="width of the 3 layers (default: 256; warp 512)")
+    p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
+    args = p.parse_args()
+    warp = args.backend == "warp"
+    args.envs = args.envs or ([4096, 16384] if warp else [256])
+    args.hidden = args.hidden or (512 if warp else 256)
+    runs = [measure(args, n) for n in args.envs]
+    summary = {
+        "backend": args.backend, "device": args.device if warp else "cpu", "steps": args.steps,
+        "hidden": args.hidden, "runs": runs,
+        **{k: {str(r["envs"]): r[k] for r in runs} for k in ("collect_over_sim", "update_share", "env_steps_per_s")},
+    }  # fmt: skip
+    if len(runs) == 1:  # the single-count form of issue 6 keeps its flat keys
+        summary.update({k: runs[0][k] for k in ("envs", "iteration_s", "simulation_s", "update_s", "ratio")})
+    print(json.dumps(summary))
 
 
 if __name__ == "__main__":
