@@ -89,7 +89,8 @@ def main() -> None:
     args = p.parse_args()
 
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    runs = [train_and_evaluate(args, s, Path(args.out) / stamp / f"seed{s}") for s in range(args.first_seed, args.first_seed + args.seeds)]
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    runs = [train_and_evaluate(args, s, Path(args.out) / stamp / f"seed{s}") for s in seeds]
     per_seed = [{**all_ratios(r["eval"]), "seed": r["seed"], "iterations": r["iterations"]} for r in runs]
     result = {k: statistics.median(r[k] for r in per_seed) for k in per_seed[0] if k not in ("seed", "iterations")}
     result.update(
