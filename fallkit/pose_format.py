@@ -239,12 +239,22 @@ def root_quat_from_pitch_roll(pitch: float, roll: float) -> np.ndarray:
 
 
 def gravity_in_frame(quat: np.ndarray) -> np.ndarray:
-    """R(q)ᵀ e_z: the world up axis in the frame of one quaternion (w, x, y, z)."""
-    w, x, y, z = np.asarray(quat, dtype=np.float64).reshape(4)
-    return np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
+    """R(q)ᵀ e_z: the world up axis in the frame of quaternions (w, x, y, z): [..., 4] -> [..., 3]
+    (one quaternion of any shape holding 4 numbers -> [3])."""
+    q = np.asarray(quat, dtype=np.float64)
+    w, x, y, z = np.moveaxis(q.reshape(4) if q.size == 4 else q, -1, 0)
+    return np.stack([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)], axis=-1)
+
+
+def ground_sides(quat: np.ndarray) -> np.ndarray:
+    """The word for the side nearest to straight down of every orientation [P, 4] -> [P] (str): the one
+    classification of lying poses that artist files (`ground`), dataset statistics and the end-pose
+    choice's side restriction (fallkit.pose_choice) share."""
+    down = -gravity_in_frame(np.asarray(quat, dtype=np.float64).reshape(-1, 4)).reshape(-1, 3)
+    axes = np.array(list(_SIDE_AXES.values()), dtype=np.float64)  # [6, 3]
+    return np.array(list(_SIDE_AXES))[(down @ axes.T).argmax(axis=1)]
 
 
 def ground_side(quat: np.ndarray) -> str:
     """The word for the side of the robot nearest to straight down."""
-    down = -gravity_in_frame(quat)
-    return max(_SIDE_AXES, key=lambda s: float(down @ np.array(_SIDE_AXES[s])))
+    return str(ground_sides(quat)[0])

@@ -1,7 +1,8 @@
 """FallController: the exported policy beside a robot's own controller, at the policy rate.
 
     controller = FallController.load("runs/train/biped20/<time>/export")
-    controller.reset("prone_shield_head")          # or EndPose(joints=..., ground="back")
+    controller.reset("prone_shield_head")          # or EndPose(joints=..., ground="back"),
+                                                   # or controller.choose_end_pose(state): the one the fall heads for
     every 20 ms:  command = controller.step(state)  # RobotState from the robot's estimator
                   apply command.setpoint with command.kp, command.kd, command.torque_limit
 
@@ -20,12 +21,13 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal, Mapping, Sequence
 
 import numpy as np
 
 from fallkit.deploy.state import EndPose, RobotState, check_state
 from fallkit.errors import DeployError
+from fallkit.pose_choice import PIVOT_HEIGHT, SIDES, choose_by_heading, side_counts, side_rows
 
 _META_KEYS = ("robot", "joint_names", "policy_hz", "action_scale", "nominal_pose", "joint_limits", "pd_gains",
               "observation_size", "observation_layout", "tracking_blend")  # fmt: skip
@@ -95,6 +97,7 @@ class FallController:
         self.steps = 0  # policy steps since reset: t = steps * dt
         self.missed = 0  # steps without a state since reset
         self._started = False
+        self._orientations: dict[str, tuple[EndPose, np.ndarray]] = {}  # name -> (pose, root quat), resolved once
 
     # ---- loading -------------------------------------------------------------------------
 
@@ -123,8 +126,13 @@ class FallController:
         poses_path = folder / "end_poses.json"
         poses = {}
         if poses_path.is_file():
+            limits = meta["joint_limits"]
             for name, p in json.loads(poses_path.read_text()).items():
-                poses[name] = EndPose(joints=p["joints"], root_quat=tuple(p["root_quat"]))
+                # settled poses: exports written before settling clipped them hold joints up to ~0.01 rad past a
+                # limit (sunk under load), which EndPose would refuse as a user's mistake
+                joints = {j: min(max(float(q), limits[j][0]), limits[j][1]) if j in limits else q
+                          for j, q in p["joints"].items()}  # fmt: skip
+                poses[name] = EndPose(joints=joints, root_quat=tuple(p["root_quat"]))
         return cls(meta, onnx_path, poses, joint_order, on_missing)
 
     # ---- the loop ----------------------------------------------------------------------------
@@ -142,6 +150,53 @@ class FallController:
         tilt_into(quat, self._goal_tilt)
         self.steps = self.missed = 0
         self._started = False
+
+    def add_end_poses(self, poses: Mapping[str, EndPose]) -> None:
+        """Name more end poses (your own list, a dataset's rows): `reset(name)` and `choose_end_pose`
+        see them. Each is checked now (joints, limits, orientation), not in the middle of a fall."""
+        for pose in poses.values():
+            pose.resolve(self.joint_names, self.limits)
+        self.end_poses.update(poses)
+
+    def choose_end_pose(self, state: RobotState, names: Sequence[str] | None = None, sides: Sequence[str] | None = None,
+                        pivot_height: float = PIVOT_HEIGHT) -> str:  # fmt: skip
+        """The name of the end pose this fall is heading for: call it with the state the fall policy
+        takes over at, then `reset(name)`.
+
+        Candidates: the named end poses (end_poses.json and `add_end_poses`), only `names` if given,
+        only those lying on one of `sides` (front, back, left, right, bottom, top) if given. The
+        winner lies closest to where the fall heads: its capture point for an inverted pendulum of
+        `pivot_height` (fallkit.pose_choice: the `heading` scorer of eval.poses=auto, the same code;
+        the critic scorer needs privileged simulator state and is not exported).
+        """
+        check_state(state, self.joint_order, self._q, self._qd, self.to_policy)
+        names = list(self.end_poses) if names is None else list(names)
+        unknown = [n for n in names if n not in self.end_poses]
+        if unknown or not names:
+            raise DeployError(f"choose_end_pose: no end pose named '{unknown[0]}'" if unknown else
+                              "choose_end_pose: no candidates: add_end_poses() first or name some")  # fmt: skip
+        quats = np.array([self._orientation(n) for n in names])
+        if sides is not None:
+            bad = [s for s in sides if s not in SIDES]
+            if bad:
+                raise DeployError(f"choose_end_pose: unknown side {bad[0]!r}; sides are {', '.join(SIDES)}")
+            rows = side_rows(quats, sides)
+            if len(rows) == 0:
+                there = ", ".join(f"{s} {k}" for s, k in side_counts(quats).items())
+                raise DeployError(f"choose_end_pose: none of the {len(names)} candidates lies on {'/'.join(sides)}; "
+                                  f"they lie on: {there}")  # fmt: skip
+            names, quats = [names[i] for i in rows], quats[rows]
+        quat, lin_vel = np.asarray(state.base_quat, dtype=np.float64)[None], np.asarray(state.base_lin_vel)[None]
+        return names[int(choose_by_heading(quat, lin_vel, quats, pivot_height)[0])]
+
+    def _orientation(self, name: str) -> np.ndarray:
+        """The root quaternion of a named end pose, resolved once per pose object."""
+        pose = self.end_poses[name]
+        cached = self._orientations.get(name)
+        if cached is None or cached[0] is not pose:
+            cached = (pose, pose.resolve(self.joint_names, self.limits)[1])
+            self._orientations[name] = cached
+        return cached[1]
 
     def step(self, state: RobotState | None) -> Command:
         """One policy step: the command to apply until the next one (`None`: no estimate this step)."""

@@ -17,6 +17,11 @@ things legitimately differ: the loop's PD damping is explicit where MuJoCo's pos
 actuators under `implicitfast` integrate it implicitly, and the controller computes its
 observation in float64 from MuJoCo's float64 state where the environment uses float32;
 a fall is chaotic, so single falls drift apart while the means must not.
+
+With eval.poses=auto both fall toward chosen end poses (docs/end_pose_choice.md): with
+eval.scorer=heading the controller chooses each fall's pose itself from the estimate at the
+fall's start (`FallController.choose_end_pose`), and the report counts how often it chose as
+mode=eval did; the critic scorer needs privileged state, so the loop is given eval's choice.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from fallkit.config import FallkitConfig
 from fallkit.deploy.controller import FallController
 from fallkit.deploy.state import EndPose, RobotState
 from fallkit.errors import ConfigError
+from fallkit.eval.choice import PoseChoice, choose_end_poses
 from fallkit.eval.evaluate import make_eval_env, prepare
 from fallkit.eval.metrics import FallTrace, TrialMetrics, trial_metrics
 from fallkit.eval.rollout import POLICY, Trials, draw_trials, evaluate
@@ -55,10 +61,23 @@ def run_sim2sim(config: FallkitConfig, run_dir: Path) -> dict:
     setup, ev = prepare(config), config.eval
     env = make_eval_env(setup, min(ev.trials, config.sim.num_envs), ev.seconds, ev.seed)
     trials = draw_trials(env, ev.trials, ev.seed)
+    controller, choice = FallController.load(export), setup.choice
+    if choice is not None:
+        trials = choose_end_poses(env, trials, choice)
     batch = evaluate(env, trials, [POLICY], setup.policy)[POLICY]
-    loop = plain_mujoco_falls(env.spec, FallController.load(export), trials, env.end_poses, env.max_steps)
+    own = trials
+    if choice is not None and choice.scorer == "heading":
+        own = Trials(trials.qpos, trials.qvel, controller_choices(env.spec, controller, trials, env.end_poses, choice))
+    loop = plain_mujoco_falls(env.spec, controller, own, env.end_poses, env.max_steps)
     report = compare(batch, loop)
     report["info"] = {"checkpoint": config.checkpoint, "trials": ev.trials, "seed": ev.seed, "seconds": env.max_steps * env.dt}
+    if choice is not None:
+        report["end_pose_choice"] = {
+            "scorer": choice.scorer,
+            "chosen_by": "the controller" if own is not trials else "mode=eval (privileged critic)",
+            "same_as_eval": int((own.pose_ids == trials.pose_ids).sum()),
+            "of": len(trials),
+        }
     (run_dir / "sim2sim.json").write_text(json.dumps(report, indent=2))
     (run_dir / "sim2sim.md").write_text(markdown(report))
     print(markdown(report))
@@ -98,6 +117,24 @@ def plain_mujoco_falls(spec: RobotSpec, controller: FallController, trials: Tria
         target_joint_pos=end_poses.joint_pos[trials.pose_ids].double(), unstable=torch.zeros(n, dtype=torch.bool),
     )  # fmt: skip
     return trial_metrics(trace, spec.policy_dt)
+
+
+def controller_choices(spec: RobotSpec, controller: FallController, trials: Trials, end_poses: EndPoseSet,
+                       choice: PoseChoice) -> torch.Tensor:  # fmt: skip
+    """Each fall's end pose [n] (rows of end_poses), as the controller chooses it from the estimate at the start."""
+    names = [f"candidate_{i}" for i in range(len(end_poses))]
+    controller.add_end_poses({
+        n: EndPose(joints=dict(zip(spec.joint_names, q.tolist())), root_quat=quat.tolist())
+        for n, q, quat in zip(names, end_poses.joint_pos.double().cpu(), end_poses.root_quat.double().cpu())
+    })  # fmt: skip
+    model, lay = spec.mj_model(), Layout(spec)
+    data = mujoco.MjData(model)
+    row = {n: i for i, n in enumerate(names)}
+    chosen = torch.empty(len(trials), dtype=torch.long)
+    for i in range(len(trials)):
+        data.qpos[:], data.qvel[:] = trials.qpos[i].numpy(), trials.qvel[i].numpy()  # all an estimate reads
+        chosen[i] = row[controller.choose_end_pose(_estimate(data, lay), names, None, choice.pivot_height)]
+    return chosen
 
 
 def _motor_model(spec: RobotSpec) -> mujoco.MjModel:
@@ -149,6 +186,7 @@ def compare(batch: TrialMetrics, loop: TrialMetrics) -> dict:
 
 
 def markdown(report: dict) -> str:
+    """sim2sim.md: the metrics side by side, and with eval.poses=auto whose choice the loop fell toward."""
     rows = ["| metric | mode=eval (batch) | sim2sim (plain MuJoCo loop) | paired difference, 95 % CI | agree |",
             "|---|---|---|---|---|"]  # fmt: skip
     for name, m in report["metrics"].items():
@@ -156,5 +194,10 @@ def markdown(report: dict) -> str:
         rows.append(f"| {name} | {m['batch_mean']:.4g} | {m['sim2sim_mean']:.4g} | {m['diff_mean']:+.3g} "
                     f"[{lo:+.3g}, {hi:+.3g}] | {'yes' if m['agree'] else '**no**'} |")  # fmt: skip
     verdict = "agree within sampling noise" if report["all_agree"] else "DISAGREE: a bug in one of them"
+    c = report.get("end_pose_choice")
+    chose = [] if c is None else [
+        "", f"End poses chosen by {c['scorer']} (eval.poses=auto), in the loop by {c['chosen_by']}: "
+        f"the same pose as mode=eval in {c['same_as_eval']} of {c['of']} falls.",
+    ]  # fmt: skip
     return "\n".join(["# sim2sim: the exported controller in a plain MuJoCo loop vs mode=eval", "", *rows, "",
-                      f"All metrics {verdict}."])  # fmt: skip
+                      f"All metrics {verdict}.", *chose])  # fmt: skip

@@ -9,6 +9,10 @@ the comparison is deterministic and stays paired.
 Outputs in the run dir (`fallkit.eval.report`): eval.json (one object per
 strategy), eval.md (tables), eval_trials.npz (every per-trial figure) and the
 PNG plots of `fallkit.eval.plots`.
+
+eval.poses=auto (`fallkit.eval.choice`): the same falls run twice, toward randomly
+assigned candidates and toward the candidate chosen for each fall when it begins;
+the tables are the chosen poses', eval.json's `end_pose_choice` compares the two.
 """
 
 from __future__ import annotations
@@ -26,9 +30,11 @@ from fallkit.config import FallkitConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.errors import ConfigError
+from fallkit.eval.choice import PoseChoice, choice_line, choose_end_poses, compare, restrict
 from fallkit.eval.report import ratio_line, text_table, write_results
 from fallkit.eval.rollout import POLICY, SEEK, Rollout, Trials, chunking, draw_trials, evaluate, rollout
 from fallkit.eval.strategies import STRATEGIES
+from fallkit.poses import load_end_poses
 from fallkit.rl.policy import load_policy
 from fallkit.robots import robot_spec
 
@@ -49,9 +55,10 @@ class EvalSetup:
     config: FallkitConfig  # of the env: the training run's (with a checkpoint), this run's sim
     policy: TensorDictModuleBase | None  # "policy" -> "action"
     checkpoint: str | None
-    poses: str  # end-pose source (dataset, pose file or "default")
+    poses: str  # end-pose source (dataset, pose file or "default"); with eval.poses=auto the candidates'
     split: str
     seek_reference: bool = False
+    choice: PoseChoice | None = None  # eval.poses=auto: how each fall's end pose is chosen from `poses`
 
     @property
     def strategies(self) -> list[str]:
@@ -69,13 +76,20 @@ def prepare(config: FallkitConfig) -> EvalSetup:
 
     With a checkpoint the env is built from the training run's config (robot,
     sensitivity, env and reward settings: the observations must match what the
-    policy learned on), with this run's simulator settings.
+    policy learned on), with this run's simulator settings. With eval.poses=auto the poses
+    are the candidates (eval.candidates) and `choice` says how each fall's is chosen; the
+    critic scorer needs a checkpoint, which is checked here, before anything is simulated.
     """
     ev = config.eval
-    run_config, policy = config, None
+    run_config, policy, critic = config, None, None
+    if ev.poses == "auto" and ev.scorer == "critic" and config.checkpoint is None:
+        raise ConfigError(
+            "eval.poses=auto with eval.scorer=critic ranks the end poses by a trained critic: give "
+            "checkpoint=<run dir>, or choose by where the fall heads with eval.scorer=heading"
+        )
     if config.checkpoint is not None:
         loaded = load_policy(config.checkpoint)
-        policy = loaded.module
+        policy, critic = loaded.module, loaded.critic
         trained = loaded.config
         if trained.robot.name != config.robot.name:
             log.warning("evaluating the checkpoint's robot '%s' (robot=%s is ignored)", trained.robot.name, config.robot.name)
@@ -85,6 +99,11 @@ def prepare(config: FallkitConfig) -> EvalSetup:
                 "evaluation needs initial states never used in training"
             )
         run_config = trained.model_copy(update={"sim": config.sim})
+    if ev.poses == "auto":
+        poses = ev.candidates if ev.candidates is not None else run_config.env.poses
+        critic = critic if ev.scorer == "critic" else None
+        choice = PoseChoice(ev.scorer, ev.candidate_side, critic, ev.heading_pivot_height)
+        return EvalSetup(run_config, policy, config.checkpoint, poses, ev.split, ev.seek_reference, choice)
     poses = ev.poses if ev.poses is not None else run_config.env.poses
     return EvalSetup(run_config, policy, config.checkpoint, poses, ev.split, ev.seek_reference)
 
@@ -114,9 +133,14 @@ def eval_run_config(config: FallkitConfig, seconds: float | None) -> FallkitConf
 
 def make_eval_env(setup: EvalSetup, num_envs: int, seconds: float | None, seed: int) -> FallEnv:
     """The run's FallEnv (fallkit.env.build) for evaluation: no observation noise, no disturbances,
-    no reward terms, the whole end-pose split, falls of `seconds` (None: the env's episode length)."""
+    no reward terms, the whole end-pose split, falls of `seconds` (None: the env's episode length).
+    With eval.poses=auto its end poses are the candidates, restricted to eval.candidate_side."""
     cfg = eval_run_config(setup.config, seconds)
-    return make_env(cfg, robot_spec(cfg.robot), split=setup.split, seed=seed, num_envs=num_envs, poses=setup.poses)
+    spec = robot_spec(cfg.robot)
+    if setup.choice is not None and setup.choice.sides:
+        poses = restrict(load_end_poses(setup.poses, spec, split=setup.split), setup.choice.sides, _pose_note(setup))
+        return make_env(cfg, spec, seed=seed, num_envs=num_envs, end_poses=poses)
+    return make_env(cfg, spec, split=setup.split, seed=seed, num_envs=num_envs, poses=setup.poses)
 
 
 def evaluate_checkpoint(config: FallkitConfig, run_dir: Path, checkpoint: str | Path) -> dict:
@@ -139,22 +163,42 @@ def run_eval(config: FallkitConfig, run_dir: Path) -> dict:
     )  # fmt: skip
     t0 = time.perf_counter()
     results = evaluate(env, trials, strategies, setup.policy)
+    poses = f"{setup.poses} ({_split_note(setup)}{len(env.end_poses)} poses)"
+    choice = random = None
+    if setup.choice is not None:  # the same falls again, toward the chosen poses
+        random, t1 = results, time.perf_counter()
+        chosen = choose_end_poses(env, trials, setup.choice)
+        choosing = time.perf_counter() - t1
+        results = evaluate(env, chosen, strategies, setup.policy)
+        choice = compare(random, results, trials.pose_ids, chosen.pose_ids, env.end_poses, setup.choice, poses)
+        choice["seconds_to_choose"] = choosing
+        poses = f"auto, chosen by {setup.choice.scorer} from {poses}" + (
+            f" lying on {'/'.join(setup.choice.sides)}" if setup.choice.sides else "")
     info = {
         "robot": env.spec.name,
         "checkpoint": setup.checkpoint,
         "trials": ev.trials,
         "seconds": env.max_steps * env.dt,
         "seed": ev.seed,
-        "poses": f"{setup.poses} ({_split_note(setup)}{len(env.end_poses)} poses)",
+        "poses": poses,
         "elapsed": time.perf_counter() - t0,
     }
-    summary = write_results(results, env.spec.component_names, info, Path(run_dir))
+    summary = write_results(results, env.spec.component_names, info, Path(run_dir), choice, random)
+    strategies_only = {name: summary[name] for name in results}
     print()
-    print(text_table(summary))
+    print(text_table(strategies_only))
     if POLICY in summary:
-        print(ratio_line(summary))
+        print(ratio_line(strategies_only))
+    if choice is not None:
+        print(choice_line(choice, POLICY if POLICY in results else strategies[0]))
     print(f"\n{ev.trials} falls × {len(strategies)} strategies in {info['elapsed']:.1f} s; results in {run_dir}/eval.md")
     return summary
+
+
+def _pose_note(setup: EvalSetup) -> str:
+    """Where the end poses come from, for messages: e.g. "default (test split)"."""
+    split = _split_note(setup)
+    return f"{setup.poses} ({split.removesuffix(', ')})" if split else setup.poses
 
 
 def _split_note(setup: EvalSetup) -> str:

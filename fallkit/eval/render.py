@@ -28,6 +28,7 @@ import torch
 
 from fallkit.config import FallkitConfig, RenderConfig
 from fallkit.errors import ConfigError, RenderError
+from fallkit.eval.choice import choose_end_poses
 from fallkit.eval.evaluate import make_eval_env, prepare
 from fallkit.eval.rollout import Rollout, draw_trials, rollout
 from fallkit.poses.checker import PoseChecker
@@ -221,6 +222,8 @@ def run_render(config: FallkitConfig, run_dir: Path) -> list[Path]:
     env = make_eval_env(setup, len(strategies) * rc.falls, ev.seconds, ev.seed)
     stride = frame_stride(env.spec.policy_hz, rc.fps)  # a bad render.fps fails before the rollout
     trials = draw_trials(env, rc.falls, ev.seed)
+    if setup.choice is not None:  # eval.poses=auto: the ghost is the pose chosen for each fall
+        trials = choose_end_poses(env, trials, setup.choice)
     log.info("render %s: %d fall(s) × %s, %.2f s each", env.spec.name, rc.falls, ", ".join(strategies), env.max_steps * env.dt)
     out = rollout(env, trials, strategies, setup.policy, record_states=True)
     frames = render_rollout(out, env.spec, env.end_poses, trials.pose_ids, rc)

@@ -1,6 +1,7 @@
 """mode=eval's outputs: eval.json (one object per strategy), eval.md (tables),
 eval_trials.npz (every per-trial figure), the PNG plots of `fallkit.eval.plots`, and
-the terminal table."""
+the terminal table. With eval.poses=auto, eval.json's `end_pose_choice` and an eval.md
+section compare the chosen end poses with random assignment (`fallkit.eval.choice`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from fallkit.eval import plots
+from fallkit.eval.choice import choice_markdown
 from fallkit.eval.metrics import TrialMetrics, summarize_trials
 from fallkit.eval.rollout import POLICY, SEEK, gain_scales
 from fallkit.eval.strategies import STRATEGIES
@@ -18,25 +20,35 @@ from fallkit.eval.strategies import STRATEGIES
 log = logging.getLogger(__name__)
 
 
-def write_results(results: dict[str, TrialMetrics], components: list[str], info: dict, run_dir: Path) -> dict:
-    """eval.json, eval.md, eval_trials.npz and the plots; returns the eval.json object."""
+def write_results(
+    results: dict[str, TrialMetrics], components: list[str], info: dict, run_dir: Path, choice: dict | None = None,
+    random: dict[str, TrialMetrics] | None = None,
+) -> dict:  # fmt: skip
+    """eval.json, eval.md, eval_trials.npz and the plots; returns the eval.json object.
+
+    With eval.poses=auto, `results` are the chosen poses' falls, `choice` the comparison
+    (`fallkit.eval.choice.compare`, eval.json's `end_pose_choice`) and `random` the same falls
+    toward randomly assigned poses (eval_trials.npz `random/<strategy>/<figure>`).
+    """
     summary = {
         name: {"gain_scale": gain_scales([name])[0], **summarize_trials(m, components)} for name, m in results.items()
     }
-    (run_dir / "eval.json").write_text(json.dumps(summary, indent=2))
+    written = {**summary, "end_pose_choice": choice} if choice is not None else summary
+    (run_dir / "eval.json").write_text(json.dumps(written, indent=2))
     np.savez_compressed(
         run_dir / "eval_trials.npz",
         components=np.array(components),
         **{f"{s}/{key}": v for s, m in results.items() for key, v in m.arrays().items()},
+        **{f"random/{s}/{key}": v for s, m in (random or {}).items() for key, v in m.arrays().items()},
     )
     title = f"{info['robot']}: {info['trials']} falls per strategy"
     stable = {name: m.take(~m.unstable) for name, m in results.items()}  # as in the statistics
     figures = plots.plot_all(stable, components, run_dir, title)
-    (run_dir / "eval.md").write_text(markdown_report(summary, info, [f.name for f in figures]))
+    (run_dir / "eval.md").write_text(markdown_report(summary, info, [f.name for f in figures], choice))
     unstable = {n: s["unstable_trials"] for n, s in summary.items() if s["unstable_trials"]}
     if unstable:
         log.warning("falls restarted by the simulator (unstable), per strategy: %s", unstable)
-    return summary
+    return written
 
 
 # ---- against the best standard strategy --------------------------------------------------
@@ -106,8 +118,9 @@ def text_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def markdown_report(summary: dict, info: dict, figures: list[str]) -> str:
-    """eval.md: what was run, the metric table, per-component figures, the plots."""
+def markdown_report(summary: dict, info: dict, figures: list[str], choice: dict | None = None) -> str:
+    """eval.md: what was run, the metric table, the end-pose choice (eval.poses=auto), per-component figures,
+    the plots."""
     names = list(summary)
     out = [f"# Evaluation: {info['robot']}", ""]
     out += [
@@ -142,9 +155,9 @@ def markdown_report(summary: dict, info: dict, figures: list[str]) -> str:
         "- MROE: geodesic distance between the target root orientation, turned about the vertical to",
         "  match the robot, and the root orientation at the last step. MJE: mean |q − q̂| at the last step.",
         "",
-        "## Per component: max impact force [N], median / 95th percentile",
-        "",
     ]
+    out += choice_markdown(choice, _label) if choice is not None else []
+    out += ["## Per component: max impact force [N], median / 95th percentile", ""]
     comps = list(summary[names[0]]["per_component"])
     out += ["| strategy | " + " | ".join(comps) + " |", "|---|" + "---|" * len(comps)]
     for n in names:

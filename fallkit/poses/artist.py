@@ -77,7 +77,10 @@ def settle_artist_poses(path: str | Path, spec: RobotSpec, poses: list[ArtistPos
             f"{path}:{poses[i].line}: pose '{poses[i].name}' did not come to rest within {cfg.max_time:g} s of "
             f"being dropped with frozen joints; it is not statically stable near this orientation"
         )
-    settled_q = res.qpos[:, lay.joint_qpos]
+    # clipped to the limits as the generator does: MuJoCo's soft limits let a loaded joint sink a little
+    # past them (sitting_legs_forward's elbows: 0.007 rad), and a target outside the limits is refused downstream
+    lim = torch.as_tensor(spec.joint_limits, dtype=res.qpos.dtype)
+    settled_q = res.qpos[:, lay.joint_qpos].clamp(lim[:, 0], lim[:, 1])
     settled_quat = res.qpos[:, lay.root_qpos + 3 : lay.root_qpos + 7]
     tilt = tilt_change_deg(quat, settled_quat)
     moved = (settled_q - joints).abs().amax(dim=1)

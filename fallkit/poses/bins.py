@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fallkit.pose_format import _SIDE_AXES
+from fallkit.pose_format import _SIDE_AXES, ground_sides
 from fallkit.rotations import gravity_in_frame, quat_mul
 
 
@@ -92,11 +92,8 @@ class OrientationBins:
 def side_shares(root_quat: torch.Tensor) -> dict[str, float]:
     """Share of the poses lying on each side (front, back, left, right, bottom, top): the side
     whose axis is nearest to straight down, as an artist file's `ground` names it."""
-    down = -gravity_in_frame(torch.as_tensor(root_quat).double().reshape(-1, 4))
-    axes = torch.tensor(list(_SIDE_AXES.values()), dtype=torch.float64)  # [6, 3]
-    side = (down @ axes.T).argmax(dim=1)
-    counts = torch.bincount(side, minlength=len(_SIDE_AXES)).double() / max(1, len(side))
-    return {name: float(c) for name, c in zip(_SIDE_AXES, counts)}
+    sides = ground_sides(torch.as_tensor(root_quat).double().reshape(-1, 4).numpy())
+    return {name: float((sides == name).sum()) / max(1, len(sides)) for name in _SIDE_AXES}
 
 
 def select_uniform(

@@ -3,6 +3,8 @@
 `load_policy(path).module` maps the actor observation ("policy") to the action
 ("action") with the Gaussian's mean; observation normalisation is inside it, so
 it is the whole controller: setpoint = nominal + action_scale · action.
+`load_policy(path).critic` is the trained value function V (privileged "critic"
+observation -> value, normaliser inside): `eval.poses=auto` scores end poses with it.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from torch import nn
 from fallkit.config import FallkitConfig, validate
 from fallkit.errors import CheckpointError
 from fallkit.rl.checkpoint import load_checkpoint
-from fallkit.rl.models import GaussianPolicyNet, joint_prior
+from fallkit.rl.models import GaussianPolicyNet, ValueNet, joint_prior
 from fallkit.robots import robot_spec
 from fallkit.robots.spec import RobotSpec
 
@@ -40,6 +42,7 @@ class LoadedPolicy:
     spec: RobotSpec
     iteration: int
     path: Path
+    critic: ValueNet | None = None  # [..., Dc] critic observation -> [..., 1] value, eval mode
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedPolicy:
@@ -58,4 +61,12 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedP
     net.load_state_dict(weights)
     net.to(device).eval()
     module = TensorDictModule(MeanAction(net), in_keys=["policy"], out_keys=["action"])
-    return LoadedPolicy(module, config, spec, int(ckpt["iteration"]), Path(ckpt["path"]))
+    return LoadedPolicy(module, config, spec, int(ckpt["iteration"]), Path(ckpt["path"]), _critic(ckpt, config, device))
+
+
+def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> ValueNet:
+    """The checkpoint's value network (a ValueOperator's state: "module.<ValueNet key>")."""
+    weights = {k.removeprefix("module."): v for k, v in ckpt["critic"].items()}
+    net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden)
+    net.load_state_dict(weights)
+    return net.to(device).eval()
