@@ -72,24 +72,7 @@ def comparison(exp: Experiment, out: Path) -> dict[str, Any]:
             pooled[s]["max"].append(trials[f"{s}/component_max_force"][stable])
             pooled[s]["mean"].append(trials[f"{s}/component_mean_force"][stable])
     data = {s: {k: np.concatenate(v) for k, v in d.items()} for s, d in pooled.items()}
-    fig, axes = plt.subplots(2, 1, figsize=(max(8, 2.2 * len(components)), 8))
-    width = 0.8 / len(COMPARED)
-    for ax, (key, label) in zip(axes, [("max", "max impact force [N]"), ("mean", "mean impact force [N]")]):
-        for i, s in enumerate(COMPARED):
-            pos = np.arange(len(components)) + (i - (len(COMPARED) - 1) / 2) * width
-            box = ax.boxplot(
-                [data[s][key][:, c] for c in range(len(components))], positions=pos, widths=width * 0.9,
-                patch_artist=True, showfliers=False,
-            )  # fmt: skip
-            for patch in box["boxes"]:
-                patch.set_facecolor(strategy_color(s))
-            ax.plot([], [], "s", color=strategy_color(s), label=s.replace("_", " "))
-        ax.set_xticks(np.arange(len(components)), components)
-        ax.set_ylabel(label)
-        ax.grid(axis="y", alpha=0.3)
-    axes[0].legend(ncols=len(COMPARED), loc="upper right")
-    falls = len(data[POLICY]["max"])
-    save_figure(fig, out, f"Impact per component: policy vs standard strategies ({falls} falls)")
+    _component_boxes(data, components, out)
 
     table = {
         c: {s: {k: summarize(data[s][k][:, i]) for k in ("max", "mean")} for s in COMPARED}
@@ -123,6 +106,28 @@ def comparison(exp: Experiment, out: Path) -> dict[str, Any]:
     ]
     md = _table(["component"] + [f"{s} max / mean [N] (median)" for s in COMPARED], rows)
     return {"table": table, "ratios": overall, "markdown": md, "findings": findings}
+
+
+def _component_boxes(data: dict[str, dict[str, np.ndarray]], components: list[str], out: Path) -> None:
+    """Max (top) and mean (bottom) impact force per component: one box per strategy, grouped."""
+    fig, axes = plt.subplots(2, 1, figsize=(max(8, 2.2 * len(components)), 8))
+    width = 0.8 / len(COMPARED)
+    for ax, (key, label) in zip(axes, [("max", "max impact force [N]"), ("mean", "mean impact force [N]")]):
+        for i, s in enumerate(COMPARED):
+            pos = np.arange(len(components)) + (i - (len(COMPARED) - 1) / 2) * width
+            box = ax.boxplot(
+                [data[s][key][:, c] for c in range(len(components))], positions=pos, widths=width * 0.9,
+                patch_artist=True, showfliers=False,
+            )  # fmt: skip
+            for patch in box["boxes"]:
+                patch.set_facecolor(strategy_color(s))
+            ax.plot([], [], "s", color=strategy_color(s), label=s.replace("_", " "))
+        ax.set_xticks(np.arange(len(components)), components)
+        ax.set_ylabel(label)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(ncols=len(COMPARED), loc="upper right")
+    falls = len(data[POLICY]["max"])
+    save_figure(fig, out, f"Impact per component: policy vs standard strategies ({falls} falls)")
 
 
 # ---- 2. impact vs tracking (fig:track_abl) -------------------------------------------------------------
