@@ -49,6 +49,7 @@ MODES: dict[str, str] = {
     "poses": "fallkit.eval.dataset_report:run_poses",
     "sim2sim": "fallkit.deploy.sim2sim:run_sim2sim",
     "warmup": "fallkit.env.warmup:run_warmup",
+    "detect": "fallkit.deploy.fall_detection:run_detect",
 }
 
 

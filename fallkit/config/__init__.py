@@ -1,7 +1,7 @@
 """Typed configuration: every section of the composed Hydra config as pydantic models.
 
 One module per section (`robot`, `sim`, `env`, `reward`, `train`, `eval`, `render`,
-`dataset`), holding only models: they are the one source of every default. Hydra's
+`dataset`, `detector`), holding only models: they are the one source of every default. Hydra's
 `conf/config.yaml` names the group defaults and the `hydra:` block; the values come
 from `defaults()` (stored in Hydra's ConfigStore by the app), so no value is written
 twice. `validate()` turns a composed config into `FallkitConfig`, so a wrong value is
@@ -15,6 +15,7 @@ from typing import Any, Literal
 from pydantic import Field, ValidationError, model_validator
 
 from fallkit.config.dataset import DatasetConfig, SettleConfig
+from fallkit.config.detector import DetectorConfig, PushTestConfig
 from fallkit.config.env import DisturbanceConfig, DisturbanceRange, EnvConfig, InitialStateConfig, ObservationNoise
 from fallkit.config.eval import EvalConfig
 from fallkit.config.render import RenderConfig
@@ -26,12 +27,13 @@ from fallkit.config.train import PPOConfig, TrainConfig
 from fallkit.errors import ConfigError
 
 __all__ = [
-    "BUILTIN_TERMS", "ConfigError", "DatasetConfig", "DisturbanceConfig", "DisturbanceRange", "EnvConfig",
-    "EvalConfig", "FallkitConfig", "InitialStateConfig", "Mode", "ObservationNoise", "PPOConfig", "RenderConfig",
-    "RewardConfig", "RobotConfig", "SettleConfig", "SimConfig", "TrainConfig", "defaults", "validate",
+    "BUILTIN_TERMS", "ConfigError", "DatasetConfig", "DetectorConfig", "DisturbanceConfig", "DisturbanceRange",
+    "EnvConfig", "EvalConfig", "FallkitConfig", "InitialStateConfig", "Mode", "ObservationNoise", "PPOConfig",
+    "PushTestConfig", "RenderConfig", "RewardConfig", "RobotConfig", "SettleConfig", "SimConfig", "TrainConfig",
+    "defaults", "validate",
 ]  # fmt: skip
 
-Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim", "warmup"]
+Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim", "warmup", "detect"]
 
 
 class FallkitConfig(Section):
@@ -51,6 +53,7 @@ class FallkitConfig(Section):
     eval: EvalConfig = Field(default_factory=EvalConfig)
     render: RenderConfig = Field(default_factory=RenderConfig)
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)
+    detector: DetectorConfig = Field(default_factory=DetectorConfig)
     train: TrainConfig = Field(default_factory=TrainConfig)
 
     @model_validator(mode="after")

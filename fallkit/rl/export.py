@@ -5,7 +5,8 @@ Writes into the run directory:
                 normalisation is inside the graph, the output is the Gaussian's mean
   policy.json   joint order, nominal pose, action scale (setpoint = nominal +
                 action_scale · action), PD gains and torque limits, rates, and the
-                layout of the observation vector
+                layout of the observation vector; `fall_detector`: the fall detector's settings
+                (`detector.*`) and the kinematic model it needs (fallkit.robots.kinematics)
   end_poses.json  the robot's shipped artist poses, settled as training's are:
                 name -> joints by name [rad] and root_quat (w, x, y, z); only for robots
                 that ship artist poses
@@ -25,6 +26,7 @@ from fallkit.config import FallkitConfig
 from fallkit.env.observations import describe_actor_observation
 from fallkit.errors import ConfigError
 from fallkit.rl.policy import load_policy
+from fallkit.robots.kinematics import exported_detector
 
 
 def run_export(config: FallkitConfig, run_dir: Path) -> Path:
@@ -62,6 +64,7 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         "pd_gains": {j.name: {"kp": j.kp, "kd": j.kd, "torque_limit": j.torque_limit} for j in spec.joints},
         "observation_size": obs_dim,
         "observation_layout": describe_actor_observation(spec),
+        "fall_detector": exported_detector(spec, config.detector),  # fallkit.deploy.FallDetector.load reads it
         "tracking_blend": {
             "observed": tcfg.env.observe_blend,
             "blend_time": tcfg.reward.blend_time,
