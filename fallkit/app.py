@@ -48,8 +48,9 @@ MODES: dict[str, str] = {
     "render": "fallkit.eval.render:run_render",
     "poses": "fallkit.eval.dataset_report:run_poses",
     "sim2sim": "fallkit.deploy.sim2sim:run_sim2sim",
-    "warmup": "fallkit.env.warmup:run_warmup",
     "detect": "fallkit.deploy.fall_detection:run_detect",
+    "warmup": "fallkit.env.warmup:run_warmup",
+    "play": "fallkit.play.server:run_play",
 }
 
 

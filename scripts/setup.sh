@@ -24,6 +24,17 @@ if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
   fi
 fi
 
+# mode=play's browser test (tests/test_play.py) drives Debian's Chromium, headless, with Playwright.
+if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "fallkit setup: installing chromium for the browser test of mode=play"
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+      || echo "fallkit setup: warning: could not install chromium; the browser test of mode=play will be skipped" >&2
+  else
+    echo "fallkit setup: note: install Chromium (Debian: chromium) to run the browser test of mode=play" >&2
+  fi
+fi
+
 stamp=.venv/.fallkit-setup
 want=$(cat scripts/setup.sh pyproject.toml plugins/*/pyproject.toml 2>/dev/null | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then

@@ -1,7 +1,7 @@
 """Typed configuration: every section of the composed Hydra config as pydantic models.
 
 One module per section (`robot`, `sim`, `env`, `reward`, `train`, `eval`, `render`,
-`dataset`, `detector`), holding only models: they are the one source of every default. Hydra's
+`play`, `dataset`, `detector`), holding only models: they are the one source of every default. Hydra's
 `conf/config.yaml` names the group defaults and the `hydra:` block; the values come
 from `defaults()` (stored in Hydra's ConfigStore by the app), so no value is written
 twice. `validate()` turns a composed config into `FallkitConfig`, so a wrong value is
@@ -18,6 +18,7 @@ from fallkit.config.dataset import DatasetConfig, SettleConfig
 from fallkit.config.detector import DetectorConfig, PushTestConfig
 from fallkit.config.env import DisturbanceConfig, DisturbanceRange, EnvConfig, InitialStateConfig, ObservationNoise
 from fallkit.config.eval import EvalConfig
+from fallkit.config.play import PlayConfig
 from fallkit.config.render import RenderConfig
 from fallkit.config.reward import BUILTIN_TERMS, RewardConfig
 from fallkit.config.robot import RobotConfig
@@ -28,12 +29,12 @@ from fallkit.errors import ConfigError
 
 __all__ = [
     "BUILTIN_TERMS", "ConfigError", "DatasetConfig", "DetectorConfig", "DisturbanceConfig", "DisturbanceRange",
-    "EnvConfig", "EvalConfig", "FallkitConfig", "InitialStateConfig", "Mode", "ObservationNoise", "PPOConfig",
-    "PushTestConfig", "RenderConfig", "RewardConfig", "RobotConfig", "SettleConfig", "SimConfig", "TrainConfig",
-    "defaults", "validate",
+    "EnvConfig", "EvalConfig", "FallkitConfig", "InitialStateConfig", "Mode", "ObservationNoise", "PlayConfig",
+    "PPOConfig", "PushTestConfig", "RenderConfig", "RewardConfig", "RobotConfig", "SettleConfig", "SimConfig",
+    "TrainConfig", "defaults", "validate",
 ]  # fmt: skip
 
-Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim", "warmup", "detect"]
+Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim", "play", "warmup", "detect"]
 
 
 class FallkitConfig(Section):
@@ -52,6 +53,7 @@ class FallkitConfig(Section):
     reward: RewardConfig = Field(default_factory=RewardConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
     render: RenderConfig = Field(default_factory=RenderConfig)
+    play: PlayConfig = Field(default_factory=PlayConfig)
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)
     detector: DetectorConfig = Field(default_factory=DetectorConfig)
     train: TrainConfig = Field(default_factory=TrainConfig)
@@ -80,14 +82,6 @@ class FallkitConfig(Section):
             )
         return self
 
-
-def validate(raw: dict[str, Any]) -> FallkitConfig:
-    """Validate a resolved config dict; raise ConfigError naming every bad key."""
-    try:
-        return FallkitConfig.model_validate(raw)
-    except ValidationError as exc:
-        raise ConfigError("; ".join(_describe(e) for e in exc.errors())) from None
-
     @model_validator(mode="after")
     def _dynamics_randomised_on_mujoco(self) -> "FallkitConfig":
         r = self.env.randomization
@@ -98,6 +92,14 @@ def validate(raw: dict[str, Any]) -> FallkitConfig:
                 f"derived constants per world); switch it off or use sim=mujoco"
             )
         return self
+
+
+def validate(raw: dict[str, Any]) -> FallkitConfig:
+    """Validate a resolved config dict; raise ConfigError naming every bad key."""
+    try:
+        return FallkitConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError("; ".join(_describe(e) for e in exc.errors())) from None
 
 
 def _describe(error: dict[str, Any]) -> str:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -98,12 +98,15 @@ def gain_scales(strategies: Sequence[str]) -> list[float]:
 def rollout(
     env: FallEnv, trials: Trials, strategies: Sequence[str], policy: TensorDictModuleBase | None = None,
     steps: int | None = None, record_states: bool = False, progress: tqdm | None = None,
+    on_step: Callable[[int, SimState], None] | None = None,
 ) -> Rollout:  # fmt: skip
     """Fall every trial once per strategy, all in the env's worlds at once.
 
     World block i (rows i·k … (i+1)·k−1, k = len(trials)) runs strategy i; the env
     must have exactly len(strategies)·k worlds. `policy` is a TensorDictModule
     ("policy" -> "action") and is required when "policy" is among the strategies.
+    `on_step(t, state)` sees the state after every step (mode=play draws and paces the
+    fall with it, so what it shows is this very rollout); an exception it raises ends the rollout.
     """
     strategies, k = list(strategies), len(trials)
     _check_blocks(env, strategies, k, policy)
@@ -129,6 +132,8 @@ def rollout(
         rec.record(t, env.sim.state, env.setpoint(action))
         if progress is not None:
             progress.update(1)
+        if on_step is not None:
+            on_step(t, env.sim.state)
     return rec.result(env, trials, strategies)
 
 
