@@ -306,10 +306,10 @@ def _serve(server: viser.ViserServer, player: Player, session: PlaySession, host
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
-        while not stop.wait(0.5):
-            pass
+        while not stop.wait(0.5):  # with a timeout, so Ctrl-C (KeyboardInterrupt) arrives between waits
+            continue
     except KeyboardInterrupt:
-        pass
+        print("play: stopped (Ctrl-C)", flush=True)
     finally:
         signal.signal(signal.SIGTERM, previous)
         player.close()
