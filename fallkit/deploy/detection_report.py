@@ -1,6 +1,6 @@
 """The figures of mode=detect: lead times, missed falls and false triggers, over the detector's threshold.
 
-From a PushRecord (fallkit.deploy.fall_detection), every threshold is judged by the detector's own
+From a PushRecord (recorded by fallkit.deploy.fall_detection), every threshold is judged by the detector's own
 rule (`first_trigger`) over the recorded signals:
 
 - a **fall** is a trial with a non-foot floor contact within the horizon; it is **detected** when the
@@ -18,8 +18,8 @@ signal is visible in the same figure.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,13 +27,22 @@ from fallkit.config.detector import PushTestConfig
 from fallkit.deploy.detector import DetectorSettings, first_trigger
 from fallkit.eval.plots import plt, save_figure  # matplotlib, headless
 
-if TYPE_CHECKING:
-    from fallkit.deploy.fall_detection import PushRecord
-
 SIGNALS = {"capture": "capture point outside the support [m]", "tilt": "tilt [rad]", "tilt_rate": "tilt rate [rad/s]"}
 
+@dataclass
+class PushRecord:
+    """Every trial's push, outcome and the detector's signals at every update (NaN after the trial ended)."""
 
-def analyse(record: "PushRecord", settings: DetectorSettings, pushes: PushTestConfig) -> dict:
+    impulse: np.ndarray  # [n] N·s
+    direction: np.ndarray  # [n] rad, world frame: 0 = the robot's front (+x), π/2 its left
+    time: np.ndarray  # [T] s of each update from the push's start (negative while standing before it)
+    tilt: np.ndarray  # [n, T] rad
+    tilt_rate: np.ndarray  # [n, T] rad/s
+    capture: np.ndarray  # [n, T] m: capture point outside the support polygon
+    contact_time: np.ndarray  # [n] s from the push's start to the first non-foot floor contact; NaN: none
+    live_trigger: np.ndarray  # [n] update index at which the live detector said "fall"; -1: never
+
+def analyse(record: PushRecord, settings: DetectorSettings, pushes: PushTestConfig) -> dict:
     """The report: the table at the configured settings, the sweep of capture_margin, each signal's ROC."""
     fall = np.nan_to_num(record.contact_time, nan=np.inf) <= pushes.horizon
     ends = _window_ends(record, fall, pushes.horizon)
@@ -49,16 +58,14 @@ def analyse(record: "PushRecord", settings: DetectorSettings, pushes: PushTestCo
         "falls_by_impulse": _by_impulse(record.impulse, fall),
     }
 
-
-def _window_ends(record: "PushRecord", fall: np.ndarray, horizon: float) -> np.ndarray:
+def _window_ends(record: PushRecord, fall: np.ndarray, horizon: float) -> np.ndarray:
     """Per trial, the updates that count: a fall's up to its contact (the record stops there), a
     survivor's up to the horizon."""
     recorded = (~np.isnan(record.capture)).sum(axis=1)
     within = int(np.searchsorted(record.time, horizon, side="right"))
     return np.where(fall, recorded, np.minimum(recorded, within))
 
-
-def _judge(record: "PushRecord", fall: np.ndarray, ends: np.ndarray, settings: DetectorSettings, margin: float) -> dict:
+def _judge(record: PushRecord, fall: np.ndarray, ends: np.ndarray, settings: DetectorSettings, margin: float) -> dict:
     """The figures of one capture_margin (the other settings as configured)."""
     trigger = np.full(len(fall), np.nan)
     for i, end in enumerate(ends):
@@ -90,12 +97,10 @@ def _judge(record: "PushRecord", fall: np.ndarray, ends: np.ndarray, settings: D
         "false_trigger_rate_never_down": int((false & ~late).sum()) / max(1, n_survived - int(late.sum())),
     }
 
-
 def _stat(f, x: np.ndarray) -> float | None:
     return float(f(x)) if len(x) else None
 
-
-def _signal(record: "PushRecord", name: str, fall: np.ndarray, ends: np.ndarray) -> dict:
+def _signal(record: PushRecord, name: str, fall: np.ndarray, ends: np.ndarray) -> dict:
     """One signal alone, 'fall when it exceeds τ': its ROC over every τ that changes an outcome, and its
     lead times at the lowest τ that no push which never touched down reached (the earliest quiet trigger)."""
     signal = getattr(record, name)
@@ -116,15 +121,12 @@ def _signal(record: "PushRecord", name: str, fall: np.ndarray, ends: np.ndarray)
                    quiet_lead_p5_s=_stat(lambda x: np.percentile(x, 5), np.array(lead)))  # fmt: skip
     return out
 
-
 def _by_impulse(impulse: np.ndarray, fall: np.ndarray) -> dict:
     """Where the falls begin: the smallest push that fell, the largest that was survived [N·s]."""
     return {"smallest_fall": float(impulse[fall].min()) if fall.any() else None,
             "largest_survived": float(impulse[~fall].max()) if (~fall).any() else None}  # fmt: skip
 
-
 # ---- what a person reads -------------------------------------------------------------------------
-
 
 def markdown(report: dict) -> str:
     """detection.md: the protocol in one line, the table at the configured settings, each signal, the sweep."""
@@ -169,10 +171,8 @@ def markdown(report: dict) -> str:
                      f"{sw['false_triggers_on_late_falls'][i]} | {sw['pre_push_triggers'][i]} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
-
 def _f(v: float | None) -> str:
     return "–" if v is None else f"{v:.3f}"
-
 
 def plots(report: dict, run_dir: Path) -> list[Path]:
     """detection_roc.png and detection_lead_time.png."""

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -35,7 +34,7 @@ import torch
 
 from fallkit.config import FallkitConfig
 from fallkit.config.detector import PushTestConfig
-from fallkit.deploy.detection_report import analyse, markdown, plots
+from fallkit.deploy.detection_report import PushRecord, analyse, markdown, plots
 from fallkit.deploy.detector import FallDetector, first_trigger
 from fallkit.deploy.state import RobotState
 from fallkit.errors import ConfigError
@@ -44,20 +43,6 @@ from fallkit.robots import robot_spec
 from fallkit.robots.kinematics import detector_export
 from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import Layout
-
-
-@dataclass
-class PushRecord:
-    """Every trial's push, outcome and the detector's signals at every update (NaN after the trial ended)."""
-
-    impulse: np.ndarray  # [n] N·s
-    direction: np.ndarray  # [n] rad, world frame: 0 = the robot's front (+x), π/2 its left
-    time: np.ndarray  # [T] s of each update from the push's start (negative while standing before it)
-    tilt: np.ndarray  # [n, T] rad
-    tilt_rate: np.ndarray  # [n, T] rad/s
-    capture: np.ndarray  # [n, T] m: capture point outside the support polygon
-    contact_time: np.ndarray  # [n] s from the push's start to the first non-foot floor contact; NaN: none
-    live_trigger: np.ndarray  # [n] update index at which the live detector said "fall"; -1: never
 
 
 def run_detect(config: FallkitConfig, run_dir: Path) -> dict:

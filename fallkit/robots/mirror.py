@@ -29,14 +29,26 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import mujoco
 import numpy as np
 import torch
 
-if TYPE_CHECKING:
-    from fallkit.robots.spec import RobotSpec
+
+class RobotSpec(Protocol):
+    """What the mirror reads of a robot (fallkit.robots.spec.RobotSpec, which calls derive_mirror and
+    so is not imported here)."""
+
+    joints: Any
+    components: Any
+
+    @property
+    def joint_names(self) -> list[str]: ...
+
+    def mj_model(self) -> mujoco.MjModel: ...
+
+    def nominal_q(self) -> np.ndarray: ...
 
 # Model values are written in decimal text and mirrored ones are exact negations of each other, so a
 # symmetric model agrees to rounding (biped20: to 2e-16); a millimetre or a gram is an asymmetric robot.
@@ -124,7 +136,7 @@ def _pair(names: list[str], what: str) -> list[int] | str:
 # ---- the derivation ----------------------------------------------------------------------
 
 
-def derive_mirror(spec: "RobotSpec") -> MirrorMap | str:
+def derive_mirror(spec: RobotSpec) -> MirrorMap | str:
     """The robot's mirror map, or a one-line reason why it has none (see the module docstring)."""
     m = spec.mj_model()
     joints = [m.joint(i).name for i in range(m.njnt)]
@@ -175,7 +187,7 @@ def _check_structure(m: mujoco.MjModel, joints, bodies, jpair, bpair) -> str | N
     return None
 
 
-def _nominal_qpos(spec: "RobotSpec", m: mujoco.MjModel) -> np.ndarray:
+def _nominal_qpos(spec: RobotSpec, m: mujoco.MjModel) -> np.ndarray:
     qpos = m.qpos0.copy()
     for name, value in zip(spec.joint_names, spec.nominal_q()):
         qpos[m.jnt_qposadr[m.joint(name).id]] = value
@@ -200,7 +212,7 @@ def _joint_signs(m: mujoco.MjModel, data: mujoco.MjData, joints, jpair) -> np.nd
     return signs
 
 
-def _build(spec: "RobotSpec", m: mujoco.MjModel, jpair, bpair, signs: np.ndarray) -> MirrorMap | str:
+def _build(spec: RobotSpec, m: mujoco.MjModel, jpair, bpair, signs: np.ndarray) -> MirrorMap | str:
     qpos_perm, qpos_sign = np.arange(m.nq), np.ones(m.nq)
     qvel_perm, qvel_sign = np.arange(m.nv), np.ones(m.nv)
     for j, p in enumerate(jpair):
@@ -225,7 +237,7 @@ def _build(spec: "RobotSpec", m: mujoco.MjModel, jpair, bpair, signs: np.ndarray
     )  # fmt: skip
 
 
-def _check_nominal_pose(spec: "RobotSpec", m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
+def _check_nominal_pose(spec: RobotSpec, m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
     q = spec.nominal_q()
     mirrored = mirror.mirror_joints(q)
     i = int(np.argmax(np.abs(mirrored - q)))
@@ -236,7 +248,7 @@ def _check_nominal_pose(spec: "RobotSpec", m: mujoco.MjModel, mirror: MirrorMap)
     return None
 
 
-def _check_joint_properties(spec: "RobotSpec", m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
+def _check_joint_properties(spec: RobotSpec, m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
     """Limits (the partner's, negated and swapped when the sign is −1), damping, armature, friction, springs, gains."""
     names = spec.joint_names
     for i, p in enumerate(mirror.joint_perm):
@@ -258,7 +270,7 @@ def _check_joint_properties(spec: "RobotSpec", m: mujoco.MjModel, mirror: Mirror
     return None
 
 
-def _check_components(spec: "RobotSpec", m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
+def _check_components(spec: RobotSpec, m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
     """The mirror of each component is a component of the same sensitivity weight (the impact reward is then equal)."""
     sets = {name: set(c.bodies) for name, c in spec.components.items()}
     for name, c in spec.components.items():
