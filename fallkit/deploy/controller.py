@@ -25,7 +25,7 @@ from typing import Literal, Mapping, Sequence
 
 import numpy as np
 
-from fallkit.deploy.state import EndPose, RobotState, check_state
+from fallkit.deploy.state import EndPose, RobotState, check_state, read_policy_json
 from fallkit.errors import DeployError
 from fallkit.pose_choice import PIVOT_HEIGHT, SIDES, choose_by_heading, side_counts, side_rows
 
@@ -113,13 +113,9 @@ class FallController:
         """
         folder = Path(export_dir)
         meta_path, onnx_path = folder / "policy.json", folder / "policy.onnx"
-        for p in (meta_path, onnx_path):
-            if not p.is_file():
-                raise DeployError(f"{p} not found: export the policy with python -m fallkit mode=export checkpoint=<run>")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise DeployError(f"{meta_path}: not a policy.json ({exc}); export the policy again") from None
+        meta = read_policy_json(folder)
+        if not onnx_path.is_file():
+            raise DeployError(f"{onnx_path} not found: export the policy with python -m fallkit mode=export checkpoint=<run>")
         missing = [k for k in _META_KEYS if k not in meta]
         if missing:
             raise DeployError(f"{meta_path}: lacks {missing}; export the policy with this fallkit version (mode=export)")

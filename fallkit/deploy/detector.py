@@ -31,7 +31,6 @@ Rule: a fall has begun when capture_distance > capture_margin or tilt > max_tilt
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +38,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fallkit.deploy.state import RobotState, check_state
+from fallkit.deploy.state import RobotState, check_state, read_policy_json
 from fallkit.errors import DeployError
 
 FORMAT = 1  # fallkit.robots.kinematics.FORMAT: the exported layout this detector reads
@@ -92,12 +91,7 @@ class FallDetector:
     def load(cls, export_dir: str | Path, *, joint_order: Sequence[str] | None = None) -> "FallDetector":
         """The detector of a `python -m fallkit mode=export` folder (policy.json's fall_detector)."""
         path = Path(export_dir) / "policy.json"
-        if not path.is_file():
-            raise DeployError(f"{path} not found: export the policy with python -m fallkit mode=export checkpoint=<run>")
-        try:
-            meta = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise DeployError(f"{path}: not a policy.json ({exc}); export the policy again") from None
+        meta = read_policy_json(export_dir)
         if "fall_detector" not in meta:
             raise DeployError(f"{path}: has no fall_detector; export the policy with this fallkit version (mode=export)")
         if meta["fall_detector"] is None:

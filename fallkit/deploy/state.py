@@ -8,8 +8,10 @@ radians, velocities in rad/s and m/s.
 from __future__ import annotations
 
 import difflib
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -149,3 +151,14 @@ def _joints(values: Mapping[str, float] | np.ndarray, order: list[str], out: np.
     if not math.isfinite(total):
         bad = order[int(to_policy[int(np.flatnonzero(~np.isfinite(out))[0])])]
         raise DeployError(f"{where}: joint '{bad}' is not finite")
+
+
+def read_policy_json(folder: str | Path) -> dict:
+    """policy.json of a `mode=export` folder, or one DeployError saying how to make it."""
+    path = Path(folder) / "policy.json"
+    if not path.is_file():
+        raise DeployError(f"{path} not found: export the policy with python -m fallkit mode=export checkpoint=<run>")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DeployError(f"{path}: not a policy.json ({exc}); export the policy again") from None
