@@ -13,26 +13,26 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 
+# apt_install PACKAGE WHAT: install a Debian package as root where apt-get exists; otherwise, or if
+# that fails, say what is missing and what it costs (never an error: fallkit runs without it).
+apt_install() {
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "fallkit setup: installing $1 for $2"
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$1" >/dev/null) \
+      || echo "fallkit setup: warning: could not install $1; $2 will be unavailable" >&2
+  else
+    echo "fallkit setup: note: install Debian's $1 for $2" >&2
+  fi
+}
+
 # Headless rendering (pose contact sheets, fall videos) uses MuJoCo's OSMesa backend.
 if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
-  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "fallkit setup: installing libosmesa6 for headless rendering"
-    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 >/dev/null) \
-      || echo "fallkit setup: warning: could not install libosmesa6; rendering will be unavailable" >&2
-  else
-    echo "fallkit setup: note: install OSMesa (Debian: libosmesa6) to render videos and contact sheets" >&2
-  fi
+  apt_install libosmesa6 "headless rendering (videos, contact sheets)"
 fi
-
-# mode=play's browser test (tests/test_play.py) drives Debian's Chromium, headless, with Playwright.
+# mode=play's browser test (tests/test_play.py) drives Debian's Chromium, headless, with Playwright;
+# without it that test is skipped with its reason.
 if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then
-  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "fallkit setup: installing chromium for the browser test of mode=play"
-    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
-      || echo "fallkit setup: warning: could not install chromium; the browser test of mode=play will be skipped" >&2
-  else
-    echo "fallkit setup: note: install Chromium (Debian: chromium) to run the browser test of mode=play" >&2
-  fi
+  apt_install chromium "the browser test of mode=play"
 fi
 
 stamp=.venv/.fallkit-setup
