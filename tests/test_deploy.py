@@ -233,3 +233,8 @@ def test_mode_sim2sim_agrees_with_mode_eval(biped_run, tmp_path):
     assert set(report["metrics"]) >= {"max_impact_force", "fall_mean_impact_force", "mroe", "mje"}
     assert report["all_agree"], (tmp_path / "sim2sim.md").read_text()
     assert "All metrics agree within sampling noise." in r.stdout
+
+
+def test_setting_weights_of_a_policy_without_sensitivity_inputs_is_a_one_line_error(biped_export):
+    with pytest.raises(DeployError, match=r"trained without env.sensitivity_inputs, its weights are fixed"):
+        FallController.load(biped_export).set_sensitivity({"head": 8.0})

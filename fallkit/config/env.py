@@ -110,6 +110,29 @@ class RandomizationConfig(Section):
     )
 
 
+class SensitivityInputs(Section):
+    """The components' sensitivity weights as inputs of the actor and critic (beyond the paper, which fixes
+    them at training time; docs/sensitivity_inputs.md). Off by default: it has to pay for itself."""
+
+    enabled: bool = Field(
+        False,
+        description="the actor and critic observe ln w_c of every component, so robot.sensitivity.<c>=w at "
+        "evaluation, render, sim2sim, play or on the robot changes what the same policy does",
+    )
+    low: float = Field(
+        0.2, gt=0, description="each episode draws w_c = robot weight × f_c, ln f_c uniform in [ln low, ln high]"
+    )
+    high: float = Field(
+        5.0, gt=0, description="per component, independently; low = high = 1: the robot's own weights, nothing drawn"
+    )
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "SensitivityInputs":
+        if self.low > self.high:
+            raise ValueError(f"low {self.low} > high {self.high}")
+        return self
+
+
 class EnvConfig(Section):
     """Episode, action and observation settings of FallEnv."""
 
@@ -131,6 +154,7 @@ class EnvConfig(Section):
     initial_state: InitialStateConfig = Field(default_factory=InitialStateConfig)
     disturbances: DisturbanceConfig = Field(default_factory=DisturbanceConfig)
     randomization: RandomizationConfig = Field(default_factory=RandomizationConfig)
+    sensitivity_inputs: SensitivityInputs = Field(default_factory=SensitivityInputs)
     samplers: dict[str, str] = Field(
         default_factory=lambda: {r: r for r in _SAMPLER_ROLES},
         description="sampler role -> registered sampler (group fallkit.samplers)",

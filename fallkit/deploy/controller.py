@@ -18,6 +18,7 @@ robot's computer. docs/deploy.md documents frames, units and a control loop.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +32,8 @@ from fallkit.pose_choice import PIVOT_HEIGHT, SIDES, choose_by_heading, side_cou
 
 _META_KEYS = ("robot", "joint_names", "policy_hz", "action_scale", "nominal_pose", "joint_limits", "pd_gains",
               "observation_size", "observation_layout", "tracking_blend")  # fmt: skip
+log = logging.getLogger(__name__)
+
 _LAYOUT = ("root_quat", "root_lin_vel", "root_ang_vel", "joint_pos", "joint_vel", "last_action", "last_last_action",
            "goal_root_quat", "goal_joint_pos", "blend")  # fmt: skip
 
@@ -71,6 +74,12 @@ class FallController:
         blend = meta["tracking_blend"]
         self.blend_time, self.observe_blend = float(blend["blend_time"]), bool(blend["observed"])
         self.slices = _check_layout(meta, j)
+        # policies trained with env.sensitivity_inputs take the components' weights as inputs (defaults: training's)
+        self.sensitivity: dict[str, float] = dict(meta["sensitivity"]["defaults"]) if "sensitivity" in meta else {}
+        self._sensitivity_input = np.zeros(len(self.sensitivity), dtype=np.float32)
+        self._min_sensitivity = 1e-3  # fallkit.env.observations.MIN_SENSITIVITY (policy.json's formula names it)
+        if self.sensitivity:
+            self.set_sensitivity(self.sensitivity)
         # robot order <-> policy order
         self.to_policy = np.array([self.joint_order.index(n) for n in self.joint_names])
         self.to_robot = np.array([self.joint_names.index(n) for n in self.joint_order])
@@ -103,13 +112,16 @@ class FallController:
 
     @classmethod
     def load(cls, export_dir: str | Path, *, joint_order: Sequence[str] | None = None,
-             on_missing: Literal["hold", "damp"] = "hold") -> "FallController":  # fmt: skip
+             on_missing: Literal["hold", "damp"] = "hold",
+             sensitivity: Mapping[str, float] | None = None) -> "FallController":  # fmt: skip
         """The controller of `python -m fallkit mode=export` output: policy.onnx, policy.json and
         end_poses.json (the robot's artist poses, settled, when it ships any).
 
         joint_order: the order of the robot's joint arrays (default: the policy's, policy.json);
             states may also give joints by name (a mapping), in any order.
         on_missing: what `step(None)` does: "hold" the last setpoints, or "damp" (kp = 0).
+        sensitivity: component -> weight, for a policy trained with env.sensitivity_inputs (see
+            `set_sensitivity`); the others default to policy.json's.
         """
         folder = Path(export_dir)
         meta_path, onnx_path = folder / "policy.json", folder / "policy.onnx"
@@ -129,7 +141,31 @@ class FallController:
                 joints = {j: min(max(float(q), limits[j][0]), limits[j][1]) if j in limits else q
                           for j, q in p["joints"].items()}  # fmt: skip
                 poses[name] = EndPose(joints=joints, root_quat=tuple(p["root_quat"]))
-        return cls(meta, onnx_path, poses, joint_order, on_missing)
+        controller = cls(meta, onnx_path, poses, joint_order, on_missing)
+        if sensitivity:
+            controller.set_sensitivity(sensitivity)
+        return controller
+
+    def set_sensitivity(self, weights: Mapping[str, float]) -> None:
+        """Change components' sensitivity weights (from the next step on): a just-damaged part weighs more.
+        Only for policies trained with env.sensitivity_inputs; a weight outside the range the policy was
+        trained on is used, with a warning (the policy never saw it)."""
+        info = self.meta.get("sensitivity")
+        if info is None:
+            raise DeployError("set_sensitivity: this policy was trained without env.sensitivity_inputs, its "
+                              "weights are fixed; retrain with env.sensitivity_inputs.enabled=true to set them")  # fmt: skip
+        unknown = sorted(set(weights) - set(self.sensitivity))
+        if unknown:
+            raise DeployError(f"set_sensitivity: unknown components {unknown}; components are {list(self.sensitivity)}")
+        for c, w in weights.items():
+            w = float(w)
+            if not math.isfinite(w) or w < 0:
+                raise DeployError(f"set_sensitivity: the weight of '{c}' must be a finite number >= 0, got {w}")
+            lo, hi = info["trained_range"][c]
+            if not lo <= w <= hi:
+                log.warning("sensitivity of '%s' = %g is outside the range the policy was trained on [%g, %g]", c, w, lo, hi)
+            self.sensitivity[c] = w
+        self._sensitivity_input[:] = np.log(np.maximum(list(self.sensitivity.values()), self._min_sensitivity))
 
     # ---- the loop ----------------------------------------------------------------------------
 
@@ -232,6 +268,8 @@ class FallController:
         o[s["goal_root_quat"]] = self._goal_tilt
         o[s["goal_joint_pos"]] = self._goal_q
         o[s["blend"]] = tracking_blend(self.steps * self.dt, self.blend_time) if self.observe_blend else 0.0
+        if "sensitivity" in s:
+            o[s["sensitivity"]] = self._sensitivity_input
 
     def pose_from_file(self, path: str | Path, name: str) -> EndPose:
         """The pose `name` of an artist pose file (docs/poses.md), as authored (not settled)."""
@@ -285,13 +323,16 @@ def _check_layout(meta: dict, j: int) -> dict[str, slice]:
     """policy.json's observation layout must be the one this controller builds."""
     layout = meta["observation_layout"]
     names = tuple(p["name"] for p in layout)
-    if names != _LAYOUT:
+    expected = _LAYOUT + (("sensitivity",) if "sensitivity" in meta else ())
+    if names != expected:
         raise DeployError(
-            f"policy.json: observation layout {list(names)} is not the one this fallkit builds {list(_LAYOUT)}; "
+            f"policy.json: observation layout {list(names)} is not the one this fallkit builds {list(expected)}; "
             "export the policy with the same fallkit version as this controller"
         )
     per_joint = {"joint_pos", "joint_vel", "last_action", "last_last_action", "goal_joint_pos"}
     sizes = {"root_quat": 4, "root_lin_vel": 3, "root_ang_vel": 3, "goal_root_quat": 4, "blend": 1}
+    if "sensitivity" in meta:
+        sizes["sensitivity"] = len(meta["sensitivity"]["components"])
     out = {}
     for p in layout:
         want = j if p["name"] in per_joint else sizes[p["name"]]

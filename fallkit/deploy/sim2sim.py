@@ -61,7 +61,9 @@ def run_sim2sim(config: FallkitConfig, run_dir: Path) -> dict:
     setup, ev = prepare(config), config.eval
     env = make_eval_env(setup, min(ev.trials, config.sim.num_envs), ev.seconds, ev.seed)
     trials = draw_trials(env, ev.trials, ev.seed)
-    controller, choice = FallController.load(export), setup.choice
+    run = setup.config  # a policy with sensitivity inputs runs with this run's weights, as mode=eval's does
+    weights = run.robot.sensitivity if run.env.sensitivity_inputs.enabled else None
+    controller, choice = FallController.load(export, sensitivity=weights), setup.choice
     if choice is not None:
         trials = choose_end_poses(env, trials, choice)
     batch = evaluate(env, trials, [POLICY], setup.policy)[POLICY]

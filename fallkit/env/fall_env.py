@@ -9,7 +9,8 @@ state) and is then reset per world through TorchRL's `"_reset"` mask.
 Keys (TensorDict):
   "action"         [N, J]  joint setpoint = nominal pose + action_scale · action [rad],
                            clipped to the joint limits; PD at physics rate
-  "policy"         [N, Da] actor observation (fallkit.env.observations), noisy
+  "policy"         [N, Da] actor observation (fallkit.env.observations), noisy; with
+                           env.sensitivity_inputs it ends in ln w_c, drawn per episode
   "critic"         [N, Dc] privileged critic observation, noiseless
   "contact_force"  [N, C]  per component, the largest |f_c| over the physics substeps
                            of the step [N]: for metrics, not an input
@@ -43,7 +44,7 @@ from fallkit.env.observations import (
     path_frame,
     planar_motion,
 )
-from fallkit.env.randomization import EpisodeRandomization
+from fallkit.env.randomization import EpisodeRandomization, draw_sensitivity
 from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.env.rewards.tracking import blend
 from fallkit.poses.end_pose_set import EndPoseSet
@@ -80,6 +81,7 @@ class FallEnv(EnvBase):
         self.dt = spec.policy_dt
         self.max_steps = max(1, round(env_cfg.episode_length / self.dt))
         self.action_scale = env_cfg.action_scale
+        self.observes_sensitivity = env_cfg.sensitivity_inputs.enabled
 
         # seeded generators owned by the env: CPU for the MuJoCo-based initial-state
         # sampler, the sim's device for everything drawn per step
@@ -147,7 +149,8 @@ class FallEnv(EnvBase):
 
     # Names differ from nn.Module's state_dict on purpose: this is the simulation's and
     # episodes' state, not parameters.
-    _BUFFERS = ("step_count", "end_pose_ids", "goal_root_quat", "goal_joint_pos", "last_action", "last_last_action", "_motion")
+    _BUFFERS = ("step_count", "end_pose_ids", "goal_root_quat", "goal_joint_pos", "last_action", "last_last_action",
+                "_motion", "sensitivity")  # fmt: skip
 
     def run_state(self) -> dict:
         """Everything needed to continue exactly: physics, episode buffers, disturbances, generators."""
@@ -167,7 +170,8 @@ class FallEnv(EnvBase):
                 f"the saved run has {state['step_count'].shape[0]} envs, this one {self.num_envs} (sim.num_envs)"
             )
         for name in self._BUFFERS:
-            getattr(self, name).copy_(state[name])
+            if name in state or name != "sensitivity":  # runs saved before sensitivity inputs hold the robot's
+                getattr(self, name).copy_(state[name])
         self.sim.load_state_dict(state["sim"])
         self._cpu_gen.set_state(state["generators"][0])
         self._gen.set_state(state["generators"][1])
@@ -220,6 +224,9 @@ class FallEnv(EnvBase):
         if self.disturbances is not None:
             self.disturbances.reset(mask, self._gen)
         self.randomization.reset(ids, self._gen)
+        drawn = draw_sensitivity(self.env_cfg.sensitivity_inputs, self.robot_sensitivity, len(ids), self._gen)
+        if drawn is not None:
+            self.sensitivity[ids] = drawn
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
@@ -286,9 +293,9 @@ class FallEnv(EnvBase):
         self.nominal = torch.as_tensor(spec.nominal_q(), **f32)
         limits = torch.as_tensor(spec.joint_limits, **f32)
         self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
-        self.sensitivity = torch.as_tensor(spec.sensitivity, **f32)
+        self.robot_sensitivity = torch.as_tensor(spec.sensitivity, **f32)  # [C]
         self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
-        std = noise_std(spec, self.env_cfg.noise)
+        std = noise_std(spec, self.env_cfg.noise, self.observes_sensitivity)
         noisy = std.nonzero()
         # noise is drawn for the measured columns only (a prefix of the layout)
         self._noise_cols = int(noisy.max()) + 1 if len(noisy) else 0
@@ -305,14 +312,16 @@ class FallEnv(EnvBase):
         self.last_action = torch.zeros(n, j, **f32)
         self.last_last_action = torch.zeros(n, j, **f32)
         self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
+        # [N, C] w_c of every world: the robot's, or drawn per episode with env.sensitivity_inputs
+        self.sensitivity = self.robot_sensitivity.expand(n, -1).clone()
         self._all = torch.ones(n, dtype=torch.bool, device=dev)
         self._no = torch.zeros(n, 1, dtype=torch.bool, device=dev)
 
     def _make_specs(self) -> None:
         """TorchRL's observation, action, reward and done specs (see the module docstring)."""
         n, dev, spec = self.num_envs, self.device, self.spec
-        da = sum(s for _, s in actor_layout(spec))
-        dc = sum(s for _, s in critic_layout(spec))
+        da = sum(s for _, s in actor_layout(spec, self.observes_sensitivity))
+        dc = sum(s for _, s in critic_layout(spec, self.observes_sensitivity))
         self.observation_spec = Composite(
             policy=Unbounded((n, da), device=dev),
             critic=Unbounded((n, dc), device=dev),
@@ -335,6 +344,7 @@ class FallEnv(EnvBase):
         actor = actor_observation(
             frame, st.root_quat, st.root_lin_vel, st.root_ang_vel, st.joint_pos, st.joint_vel,
             self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos, observed,
+            self.sensitivity if self.observes_sensitivity else None,
         )  # fmt: skip
         critic = critic_observation(
             actor, frame, self.step_count * (1.0 / self.max_steps), self.randomization.friction, st.root_pos[:, 2],

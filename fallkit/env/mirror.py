@@ -15,6 +15,7 @@ of the observations is expressed in. How each kind of quantity reflects, with M 
                 mirrored setpoints are nominal + s·(mirrored actions). Angles, velocities, the last
                 two actions, goal angles and actions all follow this one rule.
   scalar        unchanged: u(t), the episode phase, friction, root height
+  component     permuted by the robot's component map: sensitivity inputs (env.sensitivity_inputs)
   body          permuted by the robot's body map: body heights
   body_motion   MuJoCo cvel (ω, v) per body in the component-major planar layout
                 (fallkit.env.observations: ωx of every body, ωy, ωz, vx, vy, vz): the body map
@@ -32,9 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fallkit.env.observations import ACTOR_OBSERVATION, PRIVILEGED_MIRROR, critic_layout
+from fallkit.env.observations import ACTOR_OBSERVATION, PRIVILEGED_MIRROR, critic_layout, observed_parts
 from fallkit.errors import ConfigError
-from fallkit.robots.mirror import POLAR, PSEUDO, MirrorMap
+from fallkit.robots.mirror import POLAR, PSEUDO, MirrorMap, component_permutation
 from fallkit.robots.spec import RobotSpec
 
 # Signs of the fixed-size kinds, component by component.
@@ -67,11 +68,14 @@ class ObservationMirror:
         return ObservationMirror(self.actor.to(device), self.critic.to(device), self.action.to(device))
 
 
-def observation_mirror(spec: RobotSpec, device: torch.device | str = "cpu") -> ObservationMirror:
-    """The robot's observation and action mirrors; a ConfigError naming the reason when it has no mirror map."""
+def observation_mirror(
+    spec: RobotSpec, device: torch.device | str = "cpu", sensitivity: bool = False
+) -> ObservationMirror:
+    """The robot's observation and action mirrors (`sensitivity`: observations with the sensitivity inputs);
+    a ConfigError naming the reason when it has no mirror map."""
     mirror = require_mirror_map(spec)
     return ObservationMirror(
-        actor_mirror(spec, mirror), critic_mirror(spec, mirror), action_mirror(spec, mirror)
+        actor_mirror(spec, mirror, sensitivity), critic_mirror(spec, mirror, sensitivity), action_mirror(spec, mirror)
     ).to(device)
 
 
@@ -90,19 +94,19 @@ def action_mirror(spec: RobotSpec, mirror: MirrorMap) -> SignedPermutation:
     return _signed_permutation([_columns("joint", 0, len(spec.joints), mirror, spec)])
 
 
-def actor_mirror(spec: RobotSpec, mirror: MirrorMap) -> SignedPermutation:
+def actor_mirror(spec: RobotSpec, mirror: MirrorMap, sensitivity: bool = False) -> SignedPermutation:
     """The actor observation [.., Da], part by part as `ACTOR_OBSERVATION` declares it."""
     parts, start = [], 0
-    for part in ACTOR_OBSERVATION:
+    for part in observed_parts(sensitivity):
         parts.append(_columns(_actor_kind(part.name), start, part.width(spec), mirror, spec))
         start += part.width(spec)
     return _signed_permutation(parts)
 
 
-def critic_mirror(spec: RobotSpec, mirror: MirrorMap) -> SignedPermutation:
+def critic_mirror(spec: RobotSpec, mirror: MirrorMap, sensitivity: bool = False) -> SignedPermutation:
     """The critic observation [.., Dc]: the actor's parts, then the privileged ones (`PRIVILEGED_MIRROR`)."""
     parts, start = [], 0
-    for name, size in critic_layout(spec):
+    for name, size in critic_layout(spec, sensitivity):
         if name.startswith("actor."):
             kind = _actor_kind(name.removeprefix("actor."))
         elif name in PRIVILEGED_MIRROR:
@@ -133,6 +137,9 @@ def _columns(kind: str, start: int, size: int, mirror: MirrorMap, spec: RobotSpe
     if kind == "joint":
         _expect(size, len(spec.joints), kind)
         return start + mirror.joint_perm, mirror.joint_sign.astype(float)
+    if kind == "component":
+        _expect(size, len(spec.components), kind)
+        return start + component_permutation(spec, mirror), np.ones(size)
     bodies = mirror.body_perm[1:] - 1  # the observations leave out the world body (MuJoCo id 0)
     if kind == "body":
         _expect(size, len(bodies), kind)

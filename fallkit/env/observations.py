@@ -29,21 +29,29 @@ from fallkit.config import ObservationNoise
 from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import quat_rotate_inverse
 
+MIN_SENSITIVITY = 1e-3  # a weight of 0 is observed as this one: ln 0 is not a number
+
 
 @dataclass(frozen=True)
 class ObservationPart:
     """One named slice of the actor observation."""
 
     name: str
-    size: int  # entries, or entries per joint when per_joint
+    size: int  # entries, or entries per joint when per_joint, per component when per_component
     per_joint: bool = False
+    per_component: bool = False
     noise: str | None = None  # the ObservationNoise field giving its std; None: exact (actions, goal)
     doc: str = ""
     # How it reflects through the robot's sagittal plane (fallkit.env.mirror: quat, vector, pseudovector,
     # joint, scalar). No default on purpose: a new part without one is an error there, not a silent guess.
     mirror: str | None = None
+    # Only in the observation of a policy trained with env.sensitivity_inputs (the last part, so the columns
+    # of every other part are the same with and without it).
+    sensitivity_input: bool = False
 
     def width(self, spec: RobotSpec) -> int:
+        if self.per_component:
+            return self.size * len(spec.components)
         return self.size * len(spec.joints) if self.per_joint else self.size
 
 
@@ -59,36 +67,48 @@ ACTOR_OBSERVATION: tuple[ObservationPart, ...] = (
     ObservationPart("goal_root_quat", 4, doc="end-pose root orientation in the path frame (see FallEnv)", mirror="quat"),
     ObservationPart("goal_joint_pos", 1, per_joint=True, doc="end-pose joint angles [rad]", mirror="joint"),
     ObservationPart("blend", 1, doc="u(t), the tracking blend of the time since the fall began (0 -> 1 over T_blend)", mirror="scalar"),
+    ObservationPart("sensitivity", 1, per_component=True, doc=f"ln max(w_c, {MIN_SENSITIVITY:g}) of every component, robot order", mirror="component", sensitivity_input=True),
 )  # fmt: skip
 
 
-def actor_layout(spec: RobotSpec) -> list[tuple[str, int]]:
-    """(name, size) of each part of the actor observation, in order."""
-    return [(part.name, part.width(spec)) for part in ACTOR_OBSERVATION]
+def observed_parts(sensitivity: bool = False) -> tuple[ObservationPart, ...]:
+    """The parts of the actor observation, with the sensitivity inputs or without (env.sensitivity_inputs)."""
+    return tuple(p for p in ACTOR_OBSERVATION if sensitivity or not p.sensitivity_input)
 
 
-def actor_slices(spec: RobotSpec) -> dict[str, slice]:
+def sensitivity_input(weights: torch.Tensor) -> torch.Tensor:
+    """What the policy observes of sensitivity weights [.., C]: ln w, weights of 0 held at MIN_SENSITIVITY
+    (log: drawn log-uniformly, a weight's meaning is its ratio to others)."""
+    return weights.clamp(min=MIN_SENSITIVITY).log()
+
+
+def actor_layout(spec: RobotSpec, sensitivity: bool = False) -> list[tuple[str, int]]:
+    """(name, size) of each part of the actor observation, in order; `sensitivity`: with the sensitivity inputs."""
+    return [(part.name, part.width(spec)) for part in observed_parts(sensitivity)]
+
+
+def actor_slices(spec: RobotSpec, sensitivity: bool = False) -> dict[str, slice]:
     """Columns of each part of the actor observation."""
     out, start = {}, 0
-    for name, size in actor_layout(spec):
+    for name, size in actor_layout(spec, sensitivity):
         out[name] = slice(start, start + size)
         start += size
     return out
 
 
-def describe_actor_observation(spec: RobotSpec) -> list[dict]:
+def describe_actor_observation(spec: RobotSpec, sensitivity: bool = False) -> list[dict]:
     """The layout as plain data (name, start, size, noise field, meaning): the export's metadata."""
-    slices = actor_slices(spec)
+    slices = actor_slices(spec, sensitivity)
     return [
         {"name": p.name, "start": slices[p.name].start, "size": p.width(spec), "noise": p.noise, "meaning": p.doc}
-        for p in ACTOR_OBSERVATION
+        for p in observed_parts(sensitivity)
     ]
 
 
-def critic_layout(spec: RobotSpec) -> list[tuple[str, int]]:
+def critic_layout(spec: RobotSpec, sensitivity: bool = False) -> list[tuple[str, int]]:
     """(name, size) of each part of the critic observation, in order."""
     b = spec.mj_model().nbody - 1  # without the world body
-    return [(f"actor.{n}", s) for n, s in actor_layout(spec)] + [
+    return [(f"actor.{n}", s) for n, s in actor_layout(spec, sensitivity)] + [
         ("phase", 1), ("friction", 1), ("root_height", 1), ("body_height", b), ("body_vel", 6 * b), ("body_acc", 6 * b),
     ]  # fmt: skip
 
@@ -101,12 +121,12 @@ PRIVILEGED_MIRROR: dict[str, str] = {
 }  # fmt: skip
 
 
-def noise_std(spec: RobotSpec, noise: ObservationNoise) -> torch.Tensor:
+def noise_std(spec: RobotSpec, noise: ObservationNoise, sensitivity: bool = False) -> torch.Tensor:
     """Per-dimension std [Da] of the actor noise (0 for the parts declared without noise)."""
     return torch.cat(
         [
             torch.full((p.width(spec),), getattr(noise, p.noise) * noise.scale if p.noise else 0.0)
-            for p in ACTOR_OBSERVATION
+            for p in observed_parts(sensitivity)
         ]
     )
 
@@ -176,10 +196,12 @@ def actor_observation(
     goal_root_quat: torch.Tensor,
     goal_joint_pos: torch.Tensor,
     blend: torch.Tensor,
+    sensitivity: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Noiseless actor observation [N, Da]; root_lin_vel in world, root_ang_vel in root frame (as SimState).
 
     blend [N]: u(t), or zeros where the actor does not observe time (env.observe_blend=false).
+    sensitivity [N, C]: the weights w_c of every world, for a policy with sensitivity inputs; None without.
     """
     parts = {
         "root_quat": frame.tilt,
@@ -193,7 +215,9 @@ def actor_observation(
         "goal_joint_pos": goal_joint_pos,
         "blend": blend.view(-1, 1),
     }
-    return torch.cat([parts[p.name] for p in ACTOR_OBSERVATION], dim=-1)
+    if sensitivity is not None:
+        parts["sensitivity"] = sensitivity_input(sensitivity)
+    return torch.cat([parts[p.name] for p in observed_parts(sensitivity is not None)], dim=-1)
 
 
 def critic_observation(

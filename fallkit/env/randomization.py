@@ -13,6 +13,8 @@ enabled (so a run without randomisation draws exactly the numbers it drew before
   joint_damping every joint's viscous damping × a factor
   armature      every joint's armature × a factor
 
+and, with env.sensitivity_inputs, the components' sensitivity weights (`draw_sensitivity`).
+
 Evaluation switches every one off (fallkit.eval.evaluate.eval_run_config), as it does noise
 and disturbances. Masses, damping and armature are per world on the MuJoCo C backend only
 (the warp backend refuses them, see fallkit.sim.warp_sim).
@@ -20,9 +22,11 @@ and disturbances. Masses, damping and armature are per world on the MuJoCo C bac
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-from fallkit.config.env import RandomizationConfig, RandomRange
+from fallkit.config.env import RandomizationConfig, RandomRange, SensitivityInputs
 from fallkit.sim.base import BatchSim
 
 
@@ -103,3 +107,16 @@ class EpisodeRandomization:
 
 def _uniform(r: RandomRange, k: int, generator: torch.Generator, device: torch.device) -> torch.Tensor:
     return r.low + (r.high - r.low) * torch.rand(k, generator=generator, device=device)
+
+
+def draw_sensitivity(
+    config: SensitivityInputs, weights: torch.Tensor, k: int, generator: torch.Generator
+) -> torch.Tensor | None:
+    """Sensitivity weights [k, C] of k new episodes: the robot's weights [C] × factors log-uniform in
+    [low, high], per component (env.sensitivity_inputs); None where nothing is drawn (low = high = 1 in
+    evaluation, or the inputs off), so the worlds keep the weights they have."""
+    if not config.enabled or config.low == config.high == 1.0:
+        return None
+    lo, hi = math.log(config.low), math.log(config.high)
+    u = torch.rand(k, weights.shape[0], generator=generator, device=weights.device)
+    return weights * torch.exp(lo + (hi - lo) * u)

@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from fallkit.config import FallkitConfig
+from fallkit.config import FallkitConfig, RobotConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.errors import ConfigError
@@ -92,13 +92,15 @@ def prepare(config: FallkitConfig) -> EvalSetup:
         policy, critic = loaded.module, loaded.critic
         trained = loaded.config
         if trained.robot.name != config.robot.name:
-            log.warning("evaluating the checkpoint's robot '%s' (robot=%s is ignored)", trained.robot.name, config.robot.name)
+            log.warning("evaluating the checkpoint's robot '%s' (robot=%s is ignored%s)", trained.robot.name,
+                        config.robot.name, ", with its sensitivity weights: add robot=" + trained.robot.name +
+                        " to set them" if trained.env.sensitivity_inputs.enabled else "")  # fmt: skip
         if trained.seed == ev.seed:
             raise ConfigError(
                 f"eval.seed: {ev.seed} is the training seed of {config.checkpoint}; "
                 "evaluation needs initial states never used in training"
             )
-        run_config = trained.model_copy(update={"sim": config.sim})
+        run_config = trained.model_copy(update={"sim": config.sim, "robot": _evaluated_robot(trained, config)})
     if ev.poses == "auto":
         poses = ev.candidates if ev.candidates is not None else run_config.env.poses
         critic = critic if ev.scorer == "critic" else None
@@ -106,6 +108,19 @@ def prepare(config: FallkitConfig) -> EvalSetup:
         return EvalSetup(run_config, policy, config.checkpoint, poses, ev.split, ev.seek_reference, choice)
     poses = ev.poses if ev.poses is not None else run_config.env.poses
     return EvalSetup(run_config, policy, config.checkpoint, poses, ev.split, ev.seek_reference)
+
+
+def _evaluated_robot(trained: FallkitConfig, config: FallkitConfig) -> RobotConfig:
+    """The robot a checkpoint is evaluated on: the training run's, with this run's sensitivity weights
+    where the policy observes them (env.sensitivity_inputs: `robot.sensitivity.head=4` changes what it does)."""
+    if not trained.env.sensitivity_inputs.enabled or trained.robot.name != config.robot.name:
+        return trained.robot
+    weights = {**trained.robot.sensitivity, **config.robot.sensitivity}
+    changed = {k: w for k, w in weights.items() if trained.robot.sensitivity.get(k) != w}
+    if changed:
+        log.info("the policy observes sensitivity weights: evaluating with %s (trained around %s)", changed,
+                 {k: trained.robot.sensitivity.get(k) for k in changed})  # fmt: skip
+    return trained.robot.model_copy(update={"sensitivity": weights})
 
 
 def eval_run_config(config: FallkitConfig, seconds: float | None) -> FallkitConfig:
@@ -116,6 +131,8 @@ def eval_run_config(config: FallkitConfig, seconds: float | None) -> FallkitConf
         "disturbances": env.disturbances.model_copy(update={"enabled": False}),
         "randomization": type(env.randomization)(),  # nominal friction, gains and timing
         "pose_fraction": 1.0,  # a dataset-size ablation subsamples training poses, never the test split
+        # a policy with sensitivity inputs observes the robot's weights (robot.sensitivity), none drawn
+        "sensitivity_inputs": env.sensitivity_inputs.model_copy(update={"low": 1.0, "high": 1.0}),
     }
     if seconds is not None:
         env_update["episode_length"] = seconds

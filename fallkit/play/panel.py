@@ -73,11 +73,16 @@ class Panel:
         self.sensitivity = self._sensitivity_sliders(gui)
 
     def _sensitivity_sliders(self, gui: viser.GuiApi) -> dict[str, viser.GuiSliderHandle]:
-        """One slider per component where the policy observes sensitivity weights (none does yet)."""
+        """One slider per component where the policy observes sensitivity weights, over the range it was
+        trained on (env.sensitivity_inputs: the robot's weight × [low, high])."""
         if not self.session.observes_sensitivity():
             return {}
+        trained = self.session.setup.config.env.sensitivity_inputs
         with gui.add_folder("Sensitivity"):
-            return {c: gui.add_slider(c, 0.0, 10.0, 0.1, float(comp.weight)) for c, comp in self.session.spec.components.items()}
+            return {
+                c: gui.add_slider(c, 0.0, round(max(comp.weight, 1.0) * trained.high, 1), 0.1, float(comp.weight))
+                for c, comp in self.session.spec.components.items()
+            }
 
     def pose_id(self) -> int:
         """The end pose chosen in the page (an index out of range is a one-line error there)."""

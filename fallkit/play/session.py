@@ -26,7 +26,6 @@ import numpy as np
 import torch
 
 from fallkit.config import FallkitConfig, validate
-from fallkit.env.observations import actor_layout
 from fallkit.errors import ConfigError, PoseFileError
 from fallkit.eval.evaluate import EvalSetup, make_eval_env, prepare
 from fallkit.eval.metrics import TrialMetrics, trial_metrics
@@ -197,18 +196,19 @@ class PlaySession:
     # ---- sensitivity inputs ----------------------------------------------------------------
 
     def observes_sensitivity(self) -> bool:
-        """Whether the policy takes the components' sensitivity weights as inputs (the page then shows
-        sliders for them). No observation layout has them yet: the sliders stay hidden."""
-        return self.setup.policy is not None and any(name == "sensitivity" for name, _ in actor_layout(self.spec))
+        """Whether the policy takes the components' sensitivity weights as inputs (env.sensitivity_inputs;
+        the page then shows sliders for them)."""
+        return self.setup.policy is not None and self.setup.config.env.sensitivity_inputs.enabled
 
     def set_sensitivity(self, component: str, weight: float) -> None:
-        """Change one component's sensitivity weight for the coming falls (what the policy observes)."""
-        self.env.sensitivity[self.spec.component_names.index(component)] = weight
+        """Change one component's sensitivity weight in every world (what the policy observes from its next step)."""
+        self.env.sensitivity[:, self.spec.component_names.index(component)] = weight
 
 
 def session_config(config: FallkitConfig, robot_named: bool = False) -> FallkitConfig:
     """The config play's env is built from: the checkpoint's robot (a robot named on the command line
-    that differs is a ConfigError), and one MuJoCo thread unless `sim.threads` says otherwise (a few
+    that differs is a ConfigError; its sensitivity weights count where the policy observes them, see
+    fallkit.eval.evaluate.prepare), and one MuJoCo thread unless `sim.threads` says otherwise (a few
     worlds gain nothing from a thread pool)."""
     if config.checkpoint is not None:
         trained = validate(load_checkpoint(config.checkpoint)["config"]).robot
@@ -217,7 +217,8 @@ def session_config(config: FallkitConfig, robot_named: bool = False) -> FallkitC
                 f"checkpoint={config.checkpoint} is a policy for robot '{trained.name}', not robot={config.robot.name}: "
                 f"drop robot= to play it, or choose a checkpoint trained on {config.robot.name}"
             )
-        config = config.model_copy(update={"robot": trained})
+        if trained.name != config.robot.name:
+            config = config.model_copy(update={"robot": trained})
     return config.model_copy(update={"sim": config.sim.model_copy(update={"threads": config.sim.threads or 1})})
 
 

@@ -6,7 +6,9 @@ Writes into the run directory:
   policy.json   joint order, nominal pose, action scale (setpoint = nominal +
                 action_scale · action), PD gains and torque limits, rates, and the
                 layout of the observation vector; `fall_detector`: the fall detector's settings
-                (`detector.*`) and the kinematic model it needs (fallkit.robots.kinematics)
+                (`detector.*`) and the kinematic model it needs (fallkit.robots.kinematics);
+                `sensitivity` (policies trained with env.sensitivity_inputs): the components
+                whose weights the policy takes as inputs, their defaults and trained range
   end_poses.json  the robot's shipped artist poses, settled as training's are:
                 name -> joints by name [rad] and root_quat (w, x, y, z); only for robots
                 that ship artist poses
@@ -23,7 +25,7 @@ import numpy as np
 import torch
 
 from fallkit.config import FallkitConfig
-from fallkit.env.observations import describe_actor_observation
+from fallkit.env.observations import MIN_SENSITIVITY, describe_actor_observation
 from fallkit.errors import ConfigError
 from fallkit.rl.policy import load_policy
 from fallkit.robots.kinematics import exported_detector
@@ -63,7 +65,7 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         "joint_limits": dict(zip(spec.joint_names, spec.joint_limits.tolist())),
         "pd_gains": {j.name: {"kp": j.kp, "kd": j.kd, "torque_limit": j.torque_limit} for j in spec.joints},
         "observation_size": obs_dim,
-        "observation_layout": describe_actor_observation(spec),
+        "observation_layout": describe_actor_observation(spec, tcfg.env.sensitivity_inputs.enabled),
         "fall_detector": exported_detector(spec, config.detector),  # fallkit.deploy.FallDetector.load reads it
         "tracking_blend": {
             "observed": tcfg.env.observe_blend,
@@ -72,11 +74,25 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
             "(0 at the first step); observation 'blend' = u if observed else 0",
         },
     }
+    if tcfg.env.sensitivity_inputs.enabled:
+        meta["sensitivity"] = _sensitivity_inputs(spec, tcfg)
     (run_dir / "policy.json").write_text(json.dumps(meta, indent=2))
     poses = _write_end_poses(spec, run_dir / "end_poses.json")
     print(f"exported {onnx_path} and {run_dir / 'policy.json'} (iteration {policy.iteration} of {policy.path})"
           + (f", {poses} end poses in {run_dir / 'end_poses.json'}" if poses else ""))  # fmt: skip
     return onnx_path
+
+
+def _sensitivity_inputs(spec, config: FallkitConfig) -> dict:
+    """The sensitivity inputs of a policy trained with env.sensitivity_inputs: components, their defaults
+    (the training robot's weights), the range the policy saw, and how the weights become inputs."""
+    r = config.env.sensitivity_inputs
+    return {
+        "components": spec.component_names,
+        "defaults": dict(zip(spec.component_names, spec.sensitivity.tolist())),
+        "trained_range": {c: [w * r.low, w * r.high] for c, w in zip(spec.component_names, spec.sensitivity.tolist())},
+        "formula": f"observation 'sensitivity' = ln(max(w_c, {MIN_SENSITIVITY:g})) per component, in this order",
+    }
 
 
 def _write_end_poses(spec, path: Path) -> int:

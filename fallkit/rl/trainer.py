@@ -58,7 +58,7 @@ class Trainer:
         torch.manual_seed(seed)
         self.spec = robot_spec(config.robot)
         # before anything is built: a robot without a mirror map is a one-line config error
-        mirror = observation_mirror(self.spec) if tc.ppo.mirror else None
+        mirror = observation_mirror(self.spec, sensitivity=config.env.sensitivity_inputs.enabled) if tc.ppo.mirror else None
         self.env = make_env(config, self.spec, split="train", seed=seed)
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]

@@ -272,15 +272,30 @@ def _check_joint_properties(spec: RobotSpec, m: mujoco.MjModel, mirror: MirrorMa
 
 def _check_components(spec: RobotSpec, m: mujoco.MjModel, mirror: MirrorMap) -> str | None:
     """The mirror of each component is a component of the same sensitivity weight (the impact reward is then equal)."""
-    sets = {name: set(c.bodies) for name, c in spec.components.items()}
-    for name, c in spec.components.items():
-        image = {m.body(int(mirror.body_perm[m.body(b).id])).name for b in c.bodies}
-        match = [k for k, bodies in sets.items() if bodies == image]
-        if not match:
-            return f"component '{name}': the mirror of its bodies {sorted(image)} is not a component"
-        if spec.components[match[0]].weight != c.weight:
-            return f"components '{name}' and '{match[0]}' mirror each other but weigh {c.weight:g} and {spec.components[match[0]].weight:g}"
+    names = list(spec.components)
+    for name, partner in zip(names, _component_partners(spec, m, mirror)):
+        if isinstance(partner, str):
+            return f"component '{name}': the mirror of its bodies {partner} is not a component"
+        w, v = spec.components[name].weight, spec.components[names[partner]].weight
+        if w != v:
+            return f"components '{name}' and '{names[partner]}' mirror each other but weigh {w:g} and {v:g}"
     return None
+
+
+def component_permutation(spec: RobotSpec, mirror: MirrorMap) -> np.ndarray:
+    """[C] the mirror partner of each component, robot order (derive_mirror checked that every one has one)."""
+    return np.array(_component_partners(spec, spec.mj_model(), mirror), dtype=np.int64)
+
+
+def _component_partners(spec: RobotSpec, m: mujoco.MjModel, mirror: MirrorMap) -> list[int | str]:
+    """Index of each component's mirror image, or the sorted image bodies (a string) where it is no component."""
+    sets = [set(c.bodies) for c in spec.components.values()]
+    out: list[int | str] = []
+    for c in spec.components.values():
+        image = {m.body(int(mirror.body_perm[m.body(b).id])).name for b in c.bodies}
+        out.append(sets.index(image) if image in sets else str(sorted(image)))
+    return out
+
 
 
 def _generic_state(m: mujoco.MjModel, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

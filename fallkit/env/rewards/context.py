@@ -41,7 +41,7 @@ class RewardContext:
     last_last_action: torch.Tensor  # [N, J] a_{t-2}
     target_root_quat: torch.Tensor  # [N, 4] θ̂_t, world frame: the end pose aligned with the current heading
     target_joint_pos: torch.Tensor  # [N, J] q̂_t [rad]
-    sensitivity: torch.Tensor  # [C] w_c, component order of the robot spec
+    sensitivity: torch.Tensor  # [N, C] w_c of every world ([C] broadcasts), component order of the robot spec
     time: torch.Tensor  # [N] seconds since the episode began, at the end of this step
     blend: torch.Tensor  # [N] u(t) ∈ [0, 1], the tracking blend (fallkit.env.rewards.tracking.blend)
     force_unit: float  # newtons per force unit of the impact term (1000: kN)
