@@ -118,6 +118,26 @@ def test_faded_residual_leaves_the_end_of_the_fall_to_the_prior(biped):
     torch.testing.assert_close(loc[1], prior(obs)[1])  # u = 1: the prior alone
 
 
+def test_prior_power_keeps_the_hold_and_the_residual_longer_and_still_ends_at_the_target(biped):
+    """train.prior_power: the prior seeks and fades by u^p, so mid-fall it is nearer the hold and keeps
+    more of the learned deviation, and at u = 1 it is the target joints alone, as with p = 1."""
+    from fallkit.env.observations import actor_slices
+    from fallkit.rl.models import JointPrior
+
+    cols = actor_slices(biped)
+    j, scale = len(biped.joints), 0.5
+    nominal = torch.as_tensor(biped.nominal_q()).float()
+    obs = torch.zeros(2, cols["blend"].stop)
+    q, goal = torch.randn(2, j) * 0.3, torch.randn(2, j) * 0.3
+    obs[:, cols["joint_pos"]], obs[:, cols["goal_joint_pos"]] = q, goal
+    obs[:, cols["blend"]] = torch.tensor([[0.5], [1.0]])
+    prior = JointPrior(biped, scale, seek=True, fade=True, power=3.0)
+    torch.testing.assert_close(prior(obs)[0], (q[0] + 0.125 * (goal[0] - q[0]) - nominal) / scale)  # 0.5³
+    torch.testing.assert_close(prior.residual_weight(obs)[0], torch.tensor([0.875]))
+    torch.testing.assert_close(prior(obs)[1], (goal[1] - nominal) / scale)
+    torch.testing.assert_close(prior.residual_weight(obs)[1], torch.tensor([0.0]))
+
+
 def test_checkpoints_get_the_users_normal_file_mode(tmp_path):
     import os
 

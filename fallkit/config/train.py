@@ -65,6 +65,12 @@ class TrainConfig(Section):
         description="policy mean = prior + (1 − u(t))·MLP: the learned deviation fades as the tracking blend comes "
         "in, so the end of the fall is the prior's (needs a prior and env.observe_blend)",
     )
+    prior_power: float = Field(
+        1.0,
+        gt=0,
+        description="the prior seeks and fades by u(t)^power instead of u(t): above 1 the hold and the learned "
+        "deviation keep more of the fall, and the prior takes the joints to the end pose later",
+    )
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")

@@ -77,10 +77,10 @@ class JointPrior(nn.Module):
           strategy, docs/training.md); blended, the prior leaves the impact phase to the hold.
     """
 
-    def __init__(self, spec: RobotSpec, action_scale: float, seek: bool, fade: bool = False):
+    def __init__(self, spec: RobotSpec, action_scale: float, seek: bool, fade: bool = False, power: float = 1.0):
         super().__init__()
         columns = actor_slices(spec)
-        self.seek, self.fade = seek, fade
+        self.seek, self.fade, self.power = seek, fade, float(power)
         for name in ("joint_pos", "goal_joint_pos", "blend"):
             self.register_buffer(f"{name}_columns", torch.arange(columns[name].start, columns[name].stop))
         self.register_buffer("nominal", torch.as_tensor(spec.nominal_q()).float())
@@ -89,18 +89,23 @@ class JointPrior(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         q = obs[..., self.joint_pos_columns]
         if self.seek:
-            u = obs[..., self.blend_columns]
-            q = torch.lerp(q, obs[..., self.goal_joint_pos_columns], u)
+            q = torch.lerp(q, obs[..., self.goal_joint_pos_columns], self.blend(obs))
         return (q - self.nominal) * self.inv_scale
 
+    def blend(self, obs: torch.Tensor) -> torch.Tensor:
+        """The prior's own blend u(t)^power from the observed u(t): with power > 1 the hold and the
+        learned deviation keep the fall longer and the prior takes the joints late (train.prior_power)."""
+        u = obs[..., self.blend_columns]
+        return u if self.power == 1.0 else u.clamp(min=0.0).pow(self.power)
+
     def residual_weight(self, obs: torch.Tensor) -> torch.Tensor:
-        """How much of the MLP's deviation the policy mean keeps: 1 − u(t) with `fade`, else 1.
+        """How much of the MLP's deviation the policy mean keeps: 1 − u(t)^power with `fade`, else 1.
 
         Fading hands the end of the fall to the prior: the deviation learned for the impact
         phase does not leak into the final pose (without it, MJE 0.24 rad where seek alone
         reaches 0.06, docs/training.md).
         """
-        u = obs[..., self.blend_columns]
+        u = self.blend(obs)
         return 1.0 - u if self.fade else torch.ones_like(u)
 
 
@@ -109,7 +114,7 @@ def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
     if config.train.prior == "none":
         return None
     tc = config.train
-    return JointPrior(spec, config.env.action_scale, seek=tc.prior == "seek", fade=tc.fade_residual)
+    return JointPrior(spec, config.env.action_scale, seek=tc.prior == "seek", fade=tc.fade_residual, power=tc.prior_power)
 
 
 class GaussianPolicyNet(nn.Module):
