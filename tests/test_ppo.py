@@ -147,3 +147,13 @@ def test_checkpoints_get_the_users_normal_file_mode(tmp_path):
     finally:
         os.umask(mask)
     assert path.stat().st_mode & 0o777 == 0o644  # not mkstemp's 0600
+
+
+def test_a_checkpoint_saved_before_prior_power_existed_keeps_the_power_it_was_trained_with(tmp_path):
+    from fallkit.config import validate
+
+    config = validate({"robot": {"name": "biped20"}}).model_dump(mode="json")
+    del config["train"]["prior_power"]  # as a run of the day before wrote it
+    save_checkpoint(tmp_path / "old.pt", {"iteration": 1, "config": config})
+    assert validate(load_checkpoint(tmp_path / "old.pt")["config"]).train.prior_power == 1.0
+    assert validate({"robot": {"name": "biped20"}}).train.prior_power == 8.0  # today's default

@@ -170,8 +170,9 @@ class FallEnv(EnvBase):
                 f"the saved run has {state['step_count'].shape[0]} envs, this one {self.num_envs} (sim.num_envs)"
             )
         for name in self._BUFFERS:
-            if name in state or name != "sensitivity":  # runs saved before sensitivity inputs hold the robot's
-                getattr(self, name).copy_(state[name])
+            if name == "sensitivity" and name not in state:
+                continue  # a run saved before sensitivity inputs existed: the robot's weights, as built
+            getattr(self, name).copy_(state[name])
         self.sim.load_state_dict(state["sim"])
         self._cpu_gen.set_state(state["generators"][0])
         self._gen.set_state(state["generators"][1])

@@ -92,9 +92,9 @@ def prepare(config: FallkitConfig) -> EvalSetup:
         policy, critic = loaded.module, loaded.critic
         trained = loaded.config
         if trained.robot.name != config.robot.name:
+            hint = f"; add robot={trained.robot.name} to set its sensitivity weights"
             log.warning("evaluating the checkpoint's robot '%s' (robot=%s is ignored%s)", trained.robot.name,
-                        config.robot.name, ", with its sensitivity weights: add robot=" + trained.robot.name +
-                        " to set them" if trained.env.sensitivity_inputs.enabled else "")  # fmt: skip
+                        config.robot.name, hint if trained.env.sensitivity_inputs.enabled else "")  # fmt: skip
         if trained.seed == ev.seed:
             raise ConfigError(
                 f"eval.seed: {ev.seed} is the training seed of {config.checkpoint}; "

@@ -88,7 +88,15 @@ def _load(path: Path, map_location: str | torch.device) -> dict[str, Any]:
             f"checkpoint {path} has format version {data['format_version']}; this fallkit reads version {FORMAT_VERSION}"
         )
     data["path"] = str(path)
+    _defaults_of_their_time(data.get("config"))
     return data
+
+
+def _defaults_of_their_time(config: dict | None) -> None:
+    """Settings a checkpoint's config lacks because it was saved before they existed take the value that
+    reproduces how it was trained, not today's default (a policy must act as it learned to)."""
+    if isinstance(config, dict) and isinstance(config.get("train"), dict):
+        config["train"].setdefault("prior_power", 1.0)  # the default became 8 (docs/training.md)
 
 
 def checkpoint_run_dir(path: str | Path) -> Path | None:

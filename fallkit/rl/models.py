@@ -71,7 +71,7 @@ class JointPrior(nn.Module):
     hold: the measured joint angles, (q − nominal) / action_scale. An untrained policy then
           holds whatever pose the robot is in (pure joint damping), where the standard fall
           strategies start, instead of yanking every joint toward the standing pose.
-    seek: q + u(t)·(q̂ − q), with u(t) the tracking blend the actor observes: the hold while
+    seek: q + u(t)^p·(q̂ − q) (p = train.prior_power), with u(t) the tracking blend the actor observes: the hold while
           the fall begins, turning into the target joints q̂ as the reward's tracking terms
           come in. Seeking from the start made landings harder (max impact 1.09× the best
           strategy, docs/training.md); blended, the prior leaves the impact phase to the hold.
