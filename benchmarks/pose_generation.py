@@ -15,8 +15,12 @@ fallkit/robots/assets/biped20_poses.npz is made; `python -m fallkit mode=poses`
 with the same settings writes the same poses).
 
     python benchmarks/pose_generation.py [--train 24000] [--test 2000] [--worlds 1024] [--seed 0] [--out PATH]
+        [--min-share M] [--side-min-share S] [--targeted T]
 
-Prints one JSON object on its last line: `seconds`, `poses` and the run's statistics.
+Prints one JSON object on its last line: `seconds`, `poses` and the run's statistics, among
+them `sides` (the share of the poses lying on each side) and `side_balance` (issue 14:
+lying on the left and on the right each hold >= 3/4 of the share of lying on the front or
+the back, i.e. side_balance >= 0.75).
 """
 
 from __future__ import annotations
@@ -66,12 +70,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="also write the dataset here (.npz)")
     ap.add_argument("--min-share", type=float, default=None, help="dataset.min_share (default: DatasetConfig's)")
+    ap.add_argument("--side-min-share", type=float, default=None, help="dataset.side_min_share (default: DatasetConfig's)")
     ap.add_argument("--targeted", type=float, default=None, help="dataset.targeted (default: DatasetConfig's)")
     args = ap.parse_args()
     torch.set_num_threads(1)  # the physics threads use the cores
 
     spec = get_robot(args.robot)
-    extra = {k: v for k, v in (("min_share", args.min_share), ("targeted", args.targeted)) if v is not None}
+    knobs = {"min_share": args.min_share, "side_min_share": args.side_min_share, "targeted": args.targeted}
+    extra = {k: v for k, v in knobs.items() if v is not None}
     cfg = DatasetConfig(train=args.train, test=args.test, num_worlds=args.worlds, seed=args.seed, **extra)
     load_before = os.getloadavg()[0]
     probe_before = physics_probe(spec)
@@ -112,6 +118,9 @@ def main() -> None:
         "cpus": os.cpu_count(),
         "hist_before": st["hist_before"],
         "hist_after": st["hist_after"],
+        "sides_before": dict(zip(st["sides"], st["sides_before"])),
+        "sides_after": dict(zip(st["sides"], st["sides_after"])),
+        "rare_sides": st["rare_sides"],
         "sides": {k: round(v, 4) for k, v in sides.items()},
         # issue 14: lying on the left / right each at least 3/4 of lying on the front / back
         "side_balance": round(min(sides["left"], sides["right"]) / max(sides["front"], sides["back"]), 3),

@@ -12,7 +12,9 @@ import pytest
 import torch
 
 from fallkit.config import DatasetConfig, SettleConfig
-from fallkit.poses.bins import OrientationBins, select_uniform, uniformity
+from fallkit.pose_format import ground_sides
+from fallkit.poses.balance import Balance, fill, water_level
+from fallkit.poses.bins import SIDES, OrientationBins, side_index, side_shares
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.generator import EndPoseGenerator, _Candidates, sample_root_quat
 from fallkit.poses.settle import settle
@@ -101,11 +103,29 @@ def test_orientations_sampled_in_a_bin_land_in_it():
     assert torch.equal(bins.index(quat), wanted) and torch.allclose(quat.norm(dim=-1), torch.ones(len(quat), dtype=quat.dtype))
 
 
-def test_targeted_drops_fill_the_same_bins_and_report_side_shares(biped):
-    """dataset.targeted aims a share of the drops at covered bins short of poses; the natural
-    frequencies (rarity) come from the uniform drops only."""
-    from fallkit.poses.bins import side_shares
+def test_orientations_sampled_in_a_cell_land_in_its_side_and_bin():
+    bins = OrientationBins(6, 8)
+    area = bins.cell_areas()
+    cells = torch.from_numpy(np.flatnonzero(area.ravel() > 0.05 / 48)).repeat(10)  # down to the corners, not the slivers
+    quat = bins.sample_cells(cells, torch.Generator().manual_seed(0))
+    assert torch.equal(bins.cell(quat), cells)
+    assert (side_index(quat).numpy() == np.array([SIDES.index(w) for w in ground_sides(quat.numpy())])).all()
 
+
+def test_cells_split_every_bin_between_the_sides_by_area():
+    bins = OrientationBins(6, 8)
+    area = bins.cell_areas()  # [sides, bins]
+    np.testing.assert_allclose(area.sum(1), 1 / 6, atol=1e-4)  # each side: a sixth of the sphere
+    np.testing.assert_allclose(area.sum(0), 1 / 48, atol=1e-12)  # each bin: equal areas
+    left, right = SIDES.index("left"), SIDES.index("right")
+    # lying flat on the left (sector 2, |d_z| < 1/3) is all "left"; the diagonal sectors are split in half
+    assert area[left, 2 * 8 + 2] == pytest.approx(1 / 48) and area[right, 3 * 8 + 6] == pytest.approx(1 / 48)
+    assert area[left, 2 * 8 + 3] == pytest.approx(area[SIDES.index("back"), 2 * 8 + 3], rel=1e-3)
+
+
+def test_targeted_drops_fill_the_same_bins_and_report_side_shares(biped):
+    """dataset.targeted aims a share of the drops at covered cells short of poses; the natural
+    frequencies (rarity) come from the uniform drops only."""
     cfg = DatasetConfig(**{**SMALL, "targeted": 0.5, "min_share": 0.5})
     gen = EndPoseGenerator(biped, cfg).run(progress=False)
     assert len(gen.joint_pos) == SMALL["train"] + SMALL["test"] and gen.stats["uniform_within_tolerance"]
@@ -134,32 +154,66 @@ def test_equal_area_bins_split_the_sphere_evenly():
     assert int(left) % 8 == 2
 
 
-def test_water_filling_keeps_rare_bins_and_levels_the_rest():
+def test_water_filling_levels_cells_by_weight():
     counts = np.array([500, 40, 300, 3, 120, 90])
-    keep, rare, ok = select_uniform(counts, counts, total=400, min_share=0.5)
-    assert ok and keep.sum() == 400
-    assert list(rare) == [False, True, False, True, False, False]  # below half of a uniform share (88)
-    assert keep[1] == 40 and keep[3] == 3  # rare bins keep all they have
-    cov = keep[~rare]
-    assert cov.max() - cov.min() <= 1 and (keep <= counts).all()
-    assert uniformity(keep, rare) > 0.98
-    # the under-filled bin stays below the level: uniformity drops, the caller keeps sampling
-    keep, rare, ok = select_uniform(np.array([500, 60, 300, 200]), np.array([500, 60, 300, 200]), 600, 0.1)
-    assert ok and keep[1] == 60 and uniformity(keep, rare) < 0.5
-    # not enough settled poses at all
-    assert not select_uniform(np.array([5, 5]), np.array([5, 5]), 100, 0.5)[2]
+    keep = fill(counts, np.ones(6), 400)
+    assert keep.sum() == 400 and (keep <= counts).all()
+    assert keep[1] == 40 and keep[3] == 3  # below the level: kept whole
+    assert keep[[0, 2, 4, 5]].max() - keep[[0, 2, 4, 5]].min() <= 1  # the rest at one level
+    # by weight (area): the cell twice as large keeps twice as many
+    assert fill(np.array([100, 100]), np.array([1.0, 2.0]), 90).tolist() == [30, 60]
+    assert water_level(np.array([100, 100]), np.array([1.0, 2.0]), 90) == pytest.approx(30)
+    assert fill(np.array([5, 5]), np.ones(2), 100).tolist() == [5, 5]  # too few: everything
+
+
+def test_sides_first_then_bins_within_each_side():
+    """Two bins, six sides: front and back land 10× as often as left and right; bottom and top are rare."""
+    area = np.array([[0.5, 0.5], [0.5, 0.5], [0.25, 0.75], [0.5, 0.5], [0.5, 0.5], [0.5, 0.5]]) / 6
+    counts = np.array([[900, 600], [700, 700], [40, 120], [90, 60], [3, 2], [4, 0]])
+    kw = dict(min_share=0.2, side_min_share=0.25, tolerance=0.1)
+    bal = Balance.of(counts, counts, area, total=400, **kw)
+    assert bal.feasible and bal.keep.sum() == 400
+    assert bal.rare_side.tolist() == [False, False, False, False, True, True]
+    assert bal.keep[4:].tolist() == [[3, 2], [4, 0]]  # rare sides: below the level, kept whole
+    assert bal.keep.sum(1)[:4].tolist() == [98, 98, 98, 97]  # the covered sides: equal shares
+    # within a side, per area: left's second bin is three times as large, so it keeps three times as many
+    assert bal.keep[0].tolist() == [49, 49] and bal.keep[2].tolist() == [25, 73]
+    assert not bal.rare[:4].any() and bal.done and bal.uniformity >= 0.95
+    # with cells rarer than half a uniform share left out, only front and back bins are tested
+    assert Balance.of(counts, counts, area, 400, **{**kw, "min_share": 0.5}).rare[:4].tolist() == [
+        [False, False], [False, False], [True, True], [True, True]]  # fmt: skip
+    # sides that cannot keep up hold the process: left and right keep all, front and back are thinned
+    bal = Balance.of(counts, counts, area, total=800, **kw)
+    assert bal.feasible and not bal.done and bal.keep.sum(1).tolist() == [241, 240, 160, 150, 5, 4]
+    # full: front's bins hold more than they can ever keep, (800 - 9 rare) / 4 per side, half per bin
+    assert bal.cap[0] == pytest.approx([791 / 8, 791 / 8]) and bal.full(counts)[0].all()
+    assert not bal.full(counts)[2:].any()
+
+
+def test_default_settings_level_the_sides(biped):
+    """Issue 14, B2: with the default bins and shares, lying on the left and on the right each hold at
+    least 3/4 of the share of lying on the front or the back; the drops alone land on a side 4× less
+    often than on the front or back (per-bin levelling alone: about 1/2)."""
+    gen = EndPoseGenerator(biped, DatasetConfig(train=1200, test=100, num_worlds=256)).run(progress=False)
+    st = gen.stats
+    assert st["uniform_within_tolerance"] and st["rare_sides"] == ["bottom", "top"]
+    before = dict(zip(st["sides"], st["sides_before"]))
+    assert min(before["left"], before["right"]) < 0.4 * max(before["front"], before["back"])
+    shares = side_shares(gen.root_quat)
+    assert min(shares["left"], shares["right"]) >= 0.75 * max(shares["front"], shares["back"]), shares
 
 
 def test_small_run_is_rebalanced_uniform_within_tolerance(small_run, biped):
     st = small_run.stats
     total = SMALL["train"] + SMALL["test"]
-    assert len(small_run.joint_pos) == total == st["kept"] == sum(st["hist_after"])
+    assert len(small_run.joint_pos) == total == st["kept"] == sum(st["hist_after"]) == sum(st["sides_after"])
     assert st["uniform_within_tolerance"] and st["uniformity"] >= 1 - SMALL["tolerance"]
     after, before = np.array(st["hist_after"]), np.array(st["hist_before"])
-    rare = np.zeros(len(after), bool)
-    rare[st["rare_bins"]] = True
-    covered = after[~rare]
-    assert covered.min() >= (1 - SMALL["tolerance"]) * covered.max()
+    sides = {s: n for s, n in zip(st["sides"], st["sides_after"]) if s not in st["rare_sides"]}
+    assert set(sides) >= {"front", "back", "left", "right"}
+    assert min(sides.values()) >= (1 - SMALL["tolerance"]) * max(sides.values())
+    shares = side_shares(small_run.root_quat)
+    assert [round(shares[s] * total) for s in st["sides"]] == st["sides_after"]
     # rebalancing did discard: the most popular bin was thinned to the common level
     assert before.max() > 1.5 * after.max()
     assert st["drops"] > total and st["aborted_overfull"] + st["discarded_overfull"] > 0

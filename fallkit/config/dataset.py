@@ -35,21 +35,32 @@ class DatasetConfig(Section):
     bands: int = Field(6, ge=1, description="orientation bins: equal-area bands along the root z axis")
     sectors: int = Field(8, ge=1, description="orientation bins: sectors around the root z axis")
     tolerance: float = Field(
-        0.1, ge=0, lt=1, description="uniform within: smallest covered bin >= (1 - tolerance) × largest"
+        0.1,
+        ge=0,
+        lt=1,
+        description="uniform within: the smallest covered side holds >= (1 - tolerance) × the largest, and "
+        "within each covered side so does every covered bin part per area",
     )
-    min_share: float = Field(
-        1.0,
+    side_min_share: float = Field(
+        0.25,
         ge=0,
         le=1,
-        description="bins settled into less often than this fraction of a uniform share are 'rare': "
-        "all their poses are kept and they are left out of the uniformity test",
+        description="sides (the root axis nearest to straight down) settled onto less often than this fraction "
+        "of a uniform share (1/6) are 'rare': left out of the uniformity test; the others hold equal shares",
+    )
+    min_share: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="side parts of bins settled into less often than this fraction of a uniform share (by area) "
+        "are 'rare': left out of the uniformity test (thinned only above their side's level)",
     )
     max_drops: float = Field(6.0, gt=1, description="give up rebalancing after this many drops per pose")
     targeted: float = Field(
         0.0,
         ge=0,
         lt=1,
-        description="share of the drops started with an orientation inside a covered bin still short of poses "
+        description="share of the drops started with an orientation inside a covered cell still short of poses "
         "(0: every drop uniform, as the paper samples them; the rarity of a bin is judged on the uniform drops)",
     )
     abort_steps: int = Field(

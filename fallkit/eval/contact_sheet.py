@@ -108,7 +108,7 @@ def histogram_plot(
         ax.set_ylabel("ground direction z (−1 feet down, +1 head down)")
         ax.set_title(f"{name}: {int(np.sum(counts))} poses", fontsize=10)
         fig.colorbar(im, ax=ax, shrink=0.85)
-    fig.suptitle((title + "   " if title else "") + "* rare bin: all its poses kept, outside the uniformity test", fontsize=10)
+    fig.suptitle((title + "   " if title else "") + "* rare bin: reached too seldom to be levelled, outside the uniformity test", fontsize=10)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -54,7 +54,9 @@ def run_poses(config: FallkitConfig, run_dir: Path) -> Path:
         f"{st['aborted_overfull']}, never at rest {st['unsettled']}, unstable {st['unstable']}, "
         f"settled but over-full {st['discarded_overfull']}, in flight at the end {st['in_flight_at_stop']}\n"
         f"  covered bins uniform to {st['uniformity']:.2f} (tolerance {pc.tolerance}: >= {1 - pc.tolerance:.2f}); "
-        f"{len(st['rare_bins'])} of {bins.count} bins rare (< {pc.min_share} of a uniform share, all poses kept)"
+        f"{len(st['rare_bins'])} of {bins.count} bins rare (reached < {pc.min_share} of a uniform share: outside the "
+        "uniformity test)\n"
+        f"  lying on (front/back/left/right/bottom/top): {st.get('sides_after', 'n/a')}; rare sides {st.get('rare_sides', [])}"
     )
     print("orientation bins before rebalancing (every drop, by where it came to rest or was stopped):")
     print(format_histogram(st["hist_before"], bins, st["rare_bins"]))

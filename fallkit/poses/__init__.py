@@ -3,7 +3,8 @@
 - `end_pose_set`: the set type `EndPoseSet` and `random_end_poses` (unsettled, for tests);
 - `checker`: `PoseChecker`, self-collision, the lowest point, placing poses on the ground;
 - `settle`: dropping poses with frozen joints until they rest;
-- `bins`: orientation bins and the uniform selection over them;
+- `bins`: orientation bins, the side facing the ground, and the train/test split;
+- `balance`: how many poses each side and bin keeps (rebalancing: sides first, then bins);
 - `generator`: the physics-informed generator of datasets (config section `dataset:`);
 - `dataset`: the versioned dataset file (.npz);
 - `artist`: artist pose files (.yaml);

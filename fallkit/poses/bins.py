@@ -1,9 +1,9 @@
-"""Orientation bins of settled poses, and the choice of how many poses each bin keeps.
+"""Orientation bins and sides of settled poses, and how the kept poses are split into train and test.
 
 Settled poses are binned by the direction of gravity in the root frame (an
-equal-area grid on the unit sphere, `OrientationBins`); `select_uniform` thins
-the over-full bins so the covered bins hold equally many poses (paper Sec. IV-C,
-step 5), `uniformity` measures how well that worked and `format_histogram`
+equal-area grid on the unit sphere, `OrientationBins`) and classed by the side
+facing the ground (`side_index`); `fallkit.poses.balance` decides how many poses
+each side's part of a bin keeps (paper Sec. IV-C, step 5). `format_histogram`
 prints the bins as a table; `pick_and_split` takes the kept poses of each bin and
 splits them into train and test, every bin proportionally represented in both.
 """
@@ -44,7 +44,10 @@ class OrientationBins:
 
     def index(self, root_quat: torch.Tensor) -> torch.Tensor:
         """Bin [n] (long) of each orientation [n, 4]."""
-        d = self.down(root_quat)
+        return self.index_down(self.down(root_quat))
+
+    def index_down(self, d: torch.Tensor) -> torch.Tensor:
+        """Bin [n] (long) of each ground direction [n, 3] (unit vectors in the root frame)."""
         band = ((d[:, 2] + 1.0) * 0.5 * self.bands).long().clamp(0, self.bands - 1)
         azimuth = torch.atan2(d[:, 1], d[:, 0]) + math.pi / self.sectors  # sector 0 centred on +x
         sector = (torch.remainder(azimuth, 2 * math.pi) / (2 * math.pi) * self.sectors).long()
@@ -73,6 +76,34 @@ class OrientationBins:
         heading = torch.stack((torch.cos(yaw / 2), torch.zeros_like(yaw), torch.zeros_like(yaw), torch.sin(yaw / 2)), -1)
         return quat_mul(heading, q)
 
+    def cell(self, root_quat: torch.Tensor) -> torch.Tensor:
+        """Cell [n] (long) of each orientation [n, 4]: side × count + bin, one side's part of one bin."""
+        return side_index(root_quat) * self.count + self.index(root_quat)
+
+    def sample_cells(self, cells: torch.Tensor, generator: torch.Generator, tries: int = 200) -> torch.Tensor:
+        """Root orientations [n, 4] in the given cells [n]: drawn in the cell's bin until its side is
+        right too (only the misses are drawn again; a bin's corner, 9 % of it, is missed 200 times with
+        probability 1e-8; the last draw stays when a sliver keeps being missed)."""
+        quat = self.sample(cells % self.count, generator)
+        for _ in range(tries):
+            miss = torch.nonzero(side_index(quat) != cells // self.count).squeeze(1)
+            if len(miss) == 0:
+                break
+            quat[miss] = self.sample(cells[miss] % self.count, generator)
+        return quat
+
+    def cell_areas(self) -> np.ndarray:
+        """[sides, bins]: the share of the sphere of ground directions in each side's part of each bin
+        (a cell), from a fine midpoint grid of (d_z, azimuth): uniform in both is uniform in area."""
+        nz, nphi = 120 * self.bands, 120 * self.sectors
+        z = torch.linspace(-1, 1, nz + 1, dtype=torch.float64)[:-1] + 1.0 / nz
+        phi = torch.linspace(-math.pi, math.pi, nphi + 1, dtype=torch.float64)[:-1] + math.pi / nphi
+        z, phi = torch.meshgrid(z, phi, indexing="ij")
+        r = torch.sqrt(1 - z * z)
+        d = torch.stack((r * torch.cos(phi), r * torch.sin(phi), z), -1).reshape(-1, 3)
+        cell = side_of_down(d) * self.count + self.index_down(d)
+        return np.bincount(cell.numpy(), minlength=len(SIDES) * self.count).reshape(len(SIDES), -1) / len(d)
+
     def sector_labels(self) -> list[str]:
         """The side facing the ground in each sector (degrees where there are not 8 sectors)."""
         if self.sectors == 8:
@@ -89,63 +120,27 @@ class OrientationBins:
         }
 
 
+SIDES = tuple(_SIDE_AXES)  # front, back, left, right, bottom, top: the sides of `side_index`
+_AXES = torch.tensor(list(_SIDE_AXES.values()), dtype=torch.float64)
+
+
+def side_of_down(d: torch.Tensor) -> torch.Tensor:
+    """Side [n] (index into SIDES) of ground directions [n, 3]: the root axis nearest to straight down,
+    first of SIDES on a tie (as `ground_sides`)."""
+    return (d.double() @ _AXES.T).argmax(dim=1)
+
+
+def side_index(root_quat: torch.Tensor) -> torch.Tensor:
+    """Side [n] (index into SIDES) of each orientation [n, 4]: `ground_sides`, the side_shares' classes."""
+    words = ground_sides(torch.as_tensor(root_quat).double().reshape(-1, 4).numpy())
+    return torch.from_numpy((words[:, None] == np.array(SIDES)).argmax(axis=1))
+
+
 def side_shares(root_quat: torch.Tensor) -> dict[str, float]:
     """Share of the poses lying on each side (front, back, left, right, bottom, top): the side
     whose axis is nearest to straight down, as an artist file's `ground` names it."""
     sides = ground_sides(torch.as_tensor(root_quat).double().reshape(-1, 4).numpy())
     return {name: float((sides == name).sum()) / max(1, len(sides)) for name in _SIDE_AXES}
-
-
-def select_uniform(
-    counts: np.ndarray, seen: np.ndarray, total: int, min_share: float
-) -> tuple[np.ndarray, np.ndarray, bool]:
-    """How many poses to keep per bin: (keep [K], rare [K] bool, feasible).
-
-    counts: settled poses per bin; seen: drops per bin, including the ones
-    stopped early in an over-full bin (the natural frequencies). Rare bins (seen
-    less often than `min_share` of a uniform share) keep all their poses; the
-    covered bins are filled to one common level ("water filling") so that
-    `total` poses are kept. Infeasible when fewer than `total` poses settled.
-    """
-    k = len(counts)
-    rare = seen < min_share * seen.sum() / k
-    keep = np.where(rare, counts, 0)
-    need = total - int(keep.sum())
-    cov = np.flatnonzero(~rare)
-    if need <= 0 or len(cov) == 0:
-        # hardly possible (rare bins alone hold `total`); take the rare ones in bin order
-        keep = np.minimum(counts, np.maximum(0, total - (np.cumsum(counts) - counts)))
-        return keep, rare, need <= 0
-    if counts[cov].sum() < need:
-        keep[cov] = counts[cov]
-        return keep, rare, False
-    level = _water_level(np.sort(counts[cov]), need)
-    keep[cov] = np.minimum(counts[cov], level)
-    rest = need - int(keep[cov].sum())
-    for b in cov:  # bins still above the level take one more each, in bin order
-        if rest == 0:
-            break
-        if counts[b] > level:
-            keep[b] += 1
-            rest -= 1
-    return keep, rare, True
-
-
-def _water_level(c: np.ndarray, need: int) -> int:
-    """The largest level L with sum(min(c, L)) <= need, for ascending counts c holding at least `need`."""
-    before = 0
-    for i, ci in enumerate(c):
-        filled = before + ci * (len(c) - i)
-        if filled >= need:
-            return (need - before) // (len(c) - i)
-        before += ci
-    return int(c[-1])  # pragma: no cover - excluded by the caller's sum check
-
-
-def uniformity(keep: np.ndarray, rare: np.ndarray) -> float:
-    """Smallest / largest kept count over the covered bins (1 = perfectly uniform)."""
-    cov = keep[~rare]
-    return float(cov.min() / cov.max()) if len(cov) and cov.max() > 0 else 0.0
 
 
 def format_histogram(counts: list[int] | np.ndarray, bins: OrientationBins, rare: list[int] = ()) -> str:

@@ -10,12 +10,15 @@
    rest: root and joint speeds below thresholds for `rest_time`, or discarded
    (and counted) at `max_time`;
 4. the settled joint angles and root orientation are the end pose;
-5. rebalancing: settled poses are binned by the direction of gravity in the root
-   frame (an equal-area grid on the unit sphere) and sampling goes on until the
-   over-full bins can be thinned to uniform coverage within `tolerance`; bins the
-   robot reaches less often than `min_share` x a uniform share ("rare") keep all
-   their poses (filling them would take many times the drops). A drop lying slowly
-   in a bin that is already full is stopped early: it could only be discarded.
+5. rebalancing: settled poses are classed by the side facing the ground and binned
+   by the direction of gravity in the root frame (an equal-area grid on the unit
+   sphere), and sampling goes on until the over-full sides, and the over-full bins
+   within each side, can be thinned to uniform coverage within `tolerance`
+   (`fallkit.poses.balance`); sides reached less often than `side_min_share` x a
+   uniform share, and side parts of bins reached less often than `min_share` x
+   theirs ("rare") are left out of that test (filling them would take many times
+   the drops). A drop lying slowly in a cell that is already full is stopped early:
+   it could only be discarded.
 
 The drops run in a pool of `num_worlds` simulated worlds: a world that comes to
 rest is recorded and immediately re-used for the next candidate, so no world
@@ -38,7 +41,8 @@ from tqdm import tqdm
 from fallkit import __version__
 from fallkit.config import DatasetConfig
 from fallkit.errors import ConfigError
-from fallkit.poses.bins import OrientationBins, pick_and_split, select_uniform, uniformity
+from fallkit.poses.balance import Balance
+from fallkit.poses.bins import SIDES, OrientationBins, pick_and_split
 from fallkit.poses.checker import PoseChecker
 from fallkit.poses.dataset import PoseDataset
 from fallkit.poses.settle import CpuState, RestDetector
@@ -122,7 +126,7 @@ class _DropPool:
         qpos, joints = self.cands.take(w)
         self.sim.reset(torch.arange(w), qpos, self.zero_v)
         self.hold = joints.float().to(self.sim.device)
-        self.last_bin = torch.full((w,), -1, dtype=torch.long)
+        self.last_cell = torch.full((w,), -1, dtype=torch.long)
         self.in_full = torch.zeros(w, dtype=torch.long)  # steps spent slowly in one over-full bin
         self.active = torch.ones(w, dtype=torch.bool)  # a drop is in flight (idle once the budget is spent)
         self.targeted = torch.zeros(w, dtype=torch.bool)  # its orientation was aimed at a bin short of poses
@@ -139,20 +143,20 @@ class _DropPool:
     def stop_overfull(
         self, st: CpuState, ended: torch.Tensor, full: torch.Tensor, bins: OrientationBins
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Drops to stop early (lying slowly in a full bin for `abort_steps`), and every world's bin now."""
+        """Drops to stop early (lying slowly in a full cell for `abort_steps`), and every world's cell now."""
         cfg = self.cfg
-        now_bin = bins.index(st.root_quat)
+        now_cell = bins.cell(st.root_quat)
         slow = (st.lin_speed < cfg.abort_lin_vel) & (st.ang_speed < cfg.abort_ang_vel)
-        stays = slow & full[now_bin] & (now_bin == self.last_bin)
+        stays = slow & full[now_cell] & (now_cell == self.last_cell)
         self.in_full = torch.where(stays, self.in_full + 1, torch.zeros_like(self.in_full))
-        self.last_bin = now_bin
+        self.last_cell = now_cell
         abort = ~ended & (self.in_full >= cfg.abort_steps) if cfg.abort_steps > 0 else torch.zeros_like(ended)
         abort &= self.active
-        return abort, now_bin
+        return abort, now_cell
 
     def refill(self, finished: torch.Tensor, aim: Callable[[int], tuple[torch.Tensor, torch.Tensor]]) -> None:
         """Start the next candidates in the finished worlds (in world order) while the budget lasts;
-        `aim(n)` says which of them to turn toward a bin short of poses, and their orientations."""
+        `aim(n)` says which of them to turn toward a cell short of poses, and their orientations."""
         ids = torch.nonzero(finished & self.active).squeeze(1)
         room = max(0, self.budget - self.drops)
         self.active[ids[room:]] = False
@@ -167,21 +171,22 @@ class _DropPool:
             self.hold[ids.to(self.sim.device)] = joints.float().to(self.sim.device)
             self.rest.restart(ids)
             self.in_full[ids] = 0
-            self.last_bin[ids] = -1
+            self.last_cell[ids] = -1
             self.drops += len(ids)
 
 
 class _Tally:
-    """What the drops produced: every settled pose in drop order, and the counts per bin."""
+    """What the drops produced: every settled pose in drop order, and the counts per cell
+    (side x bin, flat: side x bins.count + bin)."""
 
     def __init__(self, k: int):
-        self.counts = np.zeros(k, np.int64)  # settled poses per bin
-        # settled or stopped early, per bin, of the untargeted drops only: the natural frequencies
-        self.seen = np.zeros(k, np.int64)
+        self.counts = np.zeros(len(SIDES) * k, np.int64)  # settled poses per cell
+        # settled or stopped early, per cell, of the untargeted drops only: the natural frequencies
+        self.seen = np.zeros(len(SIDES) * k, np.int64)
         self.quat: list[torch.Tensor] = []
         self.joints: list[torch.Tensor] = []
         self.height: list[torch.Tensor] = []
-        self.bins: list[torch.Tensor] = []
+        self.cells: list[torch.Tensor] = []
         self.unsettled = self.unstable = self.aborted_overfull = 0
         self.settle_steps = 0
 
@@ -189,40 +194,14 @@ class _Tally:
                targeted: torch.Tensor) -> None:  # fmt: skip
         """Keep the poses of the worlds at rest (`ok`), in world order: deterministic."""
         idx = torch.nonzero(ok).squeeze(1)
-        b = bins.index(st.root_quat[idx])
+        c = bins.cell(st.root_quat[idx])
         self.quat.append(st.root_quat[idx].clone())
         self.joints.append(st.joint_pos[idx].clone())
         self.height.append(st.root_height[idx].clone())
-        self.bins.append(b)
-        self.counts += np.bincount(b.numpy(), minlength=len(self.counts))
-        self.seen += np.bincount(b[~targeted[idx]].numpy(), minlength=len(self.counts))
+        self.cells.append(c)
+        self.counts += np.bincount(c.numpy(), minlength=len(self.counts))
+        self.seen += np.bincount(c[~targeted[idx]].numpy(), minlength=len(self.counts))
         self.settle_steps += int(age[idx].sum())
-
-
-@dataclass
-class _Balance:
-    """The rebalancing decision for the poses settled so far."""
-
-    keep: np.ndarray  # [K] poses to keep per bin
-    rare: np.ndarray  # [K] bool
-    feasible: bool  # enough poses settled
-    done: bool  # feasible and the covered bins uniform within the tolerance
-    level: float  # the most any covered bin can keep: a bin holding that many is full
-
-    @classmethod
-    def of(cls, counts: np.ndarray, seen: np.ndarray, total: int, cfg: DatasetConfig) -> "_Balance":
-        keep, rare, feasible = select_uniform(counts, seen, total, cfg.min_share)
-        done = feasible and uniformity(keep, rare) >= 1.0 - cfg.tolerance
-        level = (total - counts[rare].sum()) / max(1, int((~rare).sum()))
-        return cls(keep, rare, feasible, done, level)
-
-    def full(self, counts: np.ndarray) -> torch.Tensor:
-        """[K] bool: covered bins that already hold `level` poses."""
-        return torch.from_numpy(~self.rare & (counts >= self.level))
-
-    def useful(self, counts: np.ndarray) -> int:
-        """Settled poses that rebalancing can keep (progress)."""
-        return int(np.where(self.rare, counts, np.minimum(counts, math.ceil(self.level))).sum())
 
 
 # ---- the generator --------------------------------------------------------------------------------
@@ -237,6 +216,7 @@ class EndPoseGenerator:
         self.backend = backend
         self.sim_options = sim_options
         self.bins = OrientationBins(self.config.bands, self.config.sectors)
+        self.area = self.bins.cell_areas()  # [sides, bins]
 
     def run(self, progress: bool = True) -> GeneratedPoses:
         cfg, spec = self.config, self.spec
@@ -263,7 +243,14 @@ class EndPoseGenerator:
         stats = self._stats(pool, tally, balance, finished, seconds)
         return self._select(tally, balance.keep, g, stats)
 
-    def _step(self, pool: _DropPool, tally: _Tally, total: int) -> tuple[_Balance, torch.Tensor]:
+    def _balance(self, tally: _Tally, total: int) -> Balance:
+        cfg, shape = self.config, self.area.shape
+        return Balance.of(
+            tally.counts.reshape(shape), tally.seen.reshape(shape), self.area, total,
+            min_share=cfg.min_share, side_min_share=cfg.side_min_share, tolerance=cfg.tolerance,
+        )  # fmt: skip
+
+    def _step(self, pool: _DropPool, tally: _Tally, total: int) -> tuple[Balance, torch.Tensor]:
         """Step the drops, record the settled poses, stop the hopeless ones: (rebalancing, finished [W])."""
         st, at_rest, timeout = pool.step()
         at_rest, timeout = at_rest & pool.active, timeout & pool.active  # idle worlds record nothing
@@ -273,32 +260,34 @@ class EndPoseGenerator:
             tally.record(st, ok, pool.rest.age, self.bins, pool.targeted)
         tally.unsettled += int((timeout & ~bad).sum())
         tally.unstable += int(bad.sum())
-        balance = _Balance.of(tally.counts, tally.seen, total, self.config)
-        # Early abort: a drop lying slowly in a bin that is already full can only be
-        # discarded (full: it holds the most any covered bin can keep), so stop it.
+        balance = self._balance(tally, total)
+        # Early abort: a drop lying slowly in a cell that is already full can only be
+        # discarded (full: it holds the most that cell can keep), so stop it.
         ended = ok | timeout | bad
-        abort, now_bin = pool.stop_overfull(st, ended, balance.full(tally.counts), self.bins)
+        full = torch.from_numpy(balance.full(tally.counts.reshape(self.area.shape)).ravel())
+        abort, now_cell = pool.stop_overfull(st, ended, full, self.bins)
         tally.aborted_overfull += int(abort.sum())
-        tally.seen += np.bincount(now_bin[abort & ~pool.targeted].numpy(), minlength=self.bins.count)
+        tally.seen += np.bincount(now_cell[abort & ~pool.targeted].numpy(), minlength=len(tally.seen))
         return balance, ended | abort
 
-    def _aim(self, n: int, balance: "_Balance", tally: _Tally, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """Which of n new drops to aim at covered bins still short of their level (a `targeted` share,
-        bins in proportion to what they lack) and their orientations; the others keep the paper's
+    def _aim(self, n: int, balance: Balance, tally: _Tally, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """Which of n new drops to aim at covered cells still short of their cap (a `targeted` share,
+        cells in proportion to what they lack) and their orientations; the others keep the paper's
         uniform orientation. With targeted = 0 nothing is drawn: the same seed, the same dataset."""
         aim = torch.zeros(n, dtype=torch.bool)
-        short = np.where(balance.rare, 0.0, np.maximum(balance.level - tally.counts, 0.0))
+        short = np.where(balance.rare, 0.0, balance.cap - tally.counts.reshape(self.area.shape)).ravel()
+        short = np.nan_to_num(np.maximum(short, 0.0), posinf=0.0)
         if self.config.targeted == 0 or short.sum() <= 0:
             return aim, torch.empty(0, 4, dtype=torch.float64)
         aim = torch.rand(n, generator=g, dtype=torch.float64) < self.config.targeted
-        bins = torch.multinomial(torch.from_numpy(short), max(1, int(aim.sum())), replacement=True, generator=g)
-        return aim, self.bins.sample(bins[: int(aim.sum())], g)
+        cells = torch.multinomial(torch.from_numpy(short), max(1, int(aim.sum())), replacement=True, generator=g)
+        return aim, self.bins.sample_cells(cells[: int(aim.sum())], g)
 
-    def _show(self, bar: tqdm, pool: _DropPool, tally: _Tally, balance: _Balance, total: int) -> None:
-        bar.update(max(0, min(total, balance.useful(tally.counts)) - bar.n))
-        bar.set_postfix(drops=pool.drops, uniform=f"{uniformity(balance.keep, balance.rare):.2f}", refresh=False)
+    def _show(self, bar: tqdm, pool: _DropPool, tally: _Tally, balance: Balance, total: int) -> None:
+        bar.update(max(0, min(total, balance.useful(tally.counts.reshape(self.area.shape))) - bar.n))
+        bar.set_postfix(drops=pool.drops, uniform=f"{balance.uniformity:.2f}", refresh=False)
 
-    def _check(self, pool: _DropPool, tally: _Tally, balance: _Balance, total: int) -> None:
+    def _check(self, pool: _DropPool, tally: _Tally, balance: Balance, total: int) -> None:
         """Fail when too few poses came to rest; warn when the bins did not become uniform."""
         cfg = self.config
         if not balance.feasible:
@@ -309,15 +298,17 @@ class EndPoseGenerator:
             )
         if not balance.done:
             log.warning(
-                "end poses: stopped at dataset.max_drops=%g x %d drops with the covered bins uniform to %.2f only "
-                "(tolerance %.2f asks for %.2f); raise max_drops or min_share, or use fewer bins",
-                cfg.max_drops, total, uniformity(balance.keep, balance.rare), cfg.tolerance, 1.0 - cfg.tolerance,
+                "end poses: stopped at dataset.max_drops=%g x %d drops with the covered sides and bins uniform to "
+                "%.2f only (tolerance %.2f asks for %.2f); raise max_drops, min_share or side_min_share, or use "
+                "fewer bins",
+                cfg.max_drops, total, balance.uniformity, cfg.tolerance, 1.0 - cfg.tolerance,
             )  # fmt: skip
 
     def _stats(
-        self, pool: _DropPool, tally: _Tally, balance: _Balance, finished: torch.Tensor, seconds: float
+        self, pool: _DropPool, tally: _Tally, balance: Balance, finished: torch.Tensor, seconds: float
     ) -> dict[str, Any]:
         settled = int(tally.counts.sum())
+        seen, counts = tally.seen.reshape(self.area.shape), tally.counts.reshape(self.area.shape)
         return {
             "drops": pool.drops,
             "unsettled": tally.unsettled,
@@ -327,11 +318,17 @@ class EndPoseGenerator:
             "in_flight_at_stop": int((pool.active & ~finished).sum()),
             "discarded_overfull": int(tally.counts.sum() - balance.keep.sum()),
             "kept": int(balance.keep.sum()),
-            "hist_before": tally.seen.tolist(),
-            "hist_settled": tally.counts.tolist(),
-            "hist_after": balance.keep.tolist(),
-            "rare_bins": np.flatnonzero(balance.rare).tolist(),
-            "uniformity": uniformity(balance.keep, balance.rare),
+            "hist_before": seen.sum(0).tolist(),  # per bin, the sides together
+            "hist_settled": counts.sum(0).tolist(),
+            "hist_after": balance.keep.sum(0).tolist(),
+            "rare_bins": np.flatnonzero(balance.rare.all(0)).tolist(),  # no part of the bin in the test
+            "sides": list(SIDES),
+            "sides_before": seen.sum(1).tolist(),
+            "sides_after": balance.keep.sum(1).tolist(),
+            "rare_sides": [SIDES[i] for i in np.flatnonzero(balance.rare_side)],
+            "cells_before": seen.tolist(),  # [sides][bins]
+            "cells_after": balance.keep.tolist(),
+            "uniformity": balance.uniformity,
             "uniform_within_tolerance": bool(balance.done),
             "mean_settle_seconds": tally.settle_steps * self.spec.policy_dt / max(1, settled),
             "policy_steps": pool.steps,
@@ -346,8 +343,9 @@ class EndPoseGenerator:
         lim = torch.as_tensor(self.spec.joint_limits)
         joint_pos = torch.cat(tally.joints).double().clamp(lim[:, 0], lim[:, 1])
         height = torch.cat(tally.height).double()
-        bins = torch.cat(tally.bins)
-        pick, split = pick_and_split(bins.numpy(), keep, self.config.test, g)
+        cells = torch.cat(tally.cells)
+        bins = cells % self.bins.count
+        pick, split = pick_and_split(cells.numpy(), keep.ravel(), self.config.test, g)
         return GeneratedPoses(
             joint_pos=joint_pos[pick],
             root_quat=root_quat[pick],
