@@ -153,11 +153,14 @@ def test_the_export_carries_the_weights_and_the_controller_observes_them_as_the_
         ({"tail": 1.0}, r"set_sensitivity: unknown components \['tail'\]; components are \['pelvis'"),
         ({"head": -1.0}, r"the weight of 'head' must be a finite number >= 0, got -1.0"),
         ({"head": float("nan")}, r"the weight of 'head' must be a finite number >= 0, got nan"),
+        ({"legs": 2.0, "head": "heavy"}, r"the weight of 'head' must be a finite number >= 0, got 'heavy'"),
     ],
 )
 def test_bad_weights_on_the_robot_are_one_line_errors(conditioned, weights, message):
+    controller = FallController.load(conditioned[1])
     with pytest.raises(DeployError, match=message):
-        FallController.load(conditioned[1]).set_sensitivity(weights)
+        controller.set_sensitivity(weights)
+    assert controller.sensitivity == FallController.load(conditioned[1]).sensitivity  # all or nothing: untouched
 
 
 def test_a_weight_outside_the_trained_range_is_used_with_a_warning(conditioned, caplog):

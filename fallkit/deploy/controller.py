@@ -157,14 +157,16 @@ class FallController:
         unknown = sorted(set(weights) - set(self.sensitivity))
         if unknown:
             raise DeployError(f"set_sensitivity: unknown components {unknown}; components are {list(self.sensitivity)}")
+        checked = {}  # all or nothing: a bad weight leaves every weight as it was
         for c, w in weights.items():
-            w = float(w)
+            w = float(w) if isinstance(w, (int, float, np.number)) else math.nan
             if not math.isfinite(w) or w < 0:
-                raise DeployError(f"set_sensitivity: the weight of '{c}' must be a finite number >= 0, got {w}")
+                raise DeployError(f"set_sensitivity: the weight of '{c}' must be a finite number >= 0, got {weights[c]!r}")
             lo, hi = info["trained_range"][c]
             if not lo <= w <= hi:
                 log.warning("sensitivity of '%s' = %g is outside the range the policy was trained on [%g, %g]", c, w, lo, hi)
-            self.sensitivity[c] = w
+            checked[c] = w
+        self.sensitivity.update(checked)
         self._sensitivity_input[:] = np.log(np.maximum(list(self.sensitivity.values()), self._min_sensitivity))
 
     # ---- the loop ----------------------------------------------------------------------------
