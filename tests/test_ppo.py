@@ -83,17 +83,23 @@ def test_missing_checkpoint_and_foreign_file(tmp_path):
         load_checkpoint(tmp_path / "other.pt")
 
 
-def test_joint_prior_holds_then_seeks_the_target_joints(biped):
+def _prior_observation(spec, blends: list[float]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Actor observations (up to the blend) with random joints q and goals, one row per blend u: (obs, q, goal)."""
     from fallkit.env.observations import actor_slices
+
+    cols, j = actor_slices(spec), len(spec.joints)
+    obs = torch.zeros(len(blends), cols["blend"].stop)
+    q, goal = torch.randn(len(blends), j) * 0.3, torch.randn(len(blends), j) * 0.3
+    obs[:, cols["joint_pos"]], obs[:, cols["goal_joint_pos"]] = q, goal
+    obs[:, cols["blend"]] = torch.tensor(blends).view(-1, 1)
+    return obs, q, goal
+
+
+def test_joint_prior_holds_then_seeks_the_target_joints(biped):
     from fallkit.rl.models import JointPrior
 
-    cols = actor_slices(biped)
-    j, scale = len(biped.joints), 0.5
-    nominal = torch.as_tensor(biped.nominal_q()).float()
-    obs = torch.zeros(3, cols["blend"].stop)
-    q, goal = torch.randn(3, j) * 0.3, torch.randn(3, j) * 0.3
-    obs[:, cols["joint_pos"]], obs[:, cols["goal_joint_pos"]] = q, goal
-    obs[:, cols["blend"]] = torch.tensor([[0.0], [0.5], [1.0]])
+    scale, nominal = 0.5, torch.as_tensor(biped.nominal_q()).float()
+    obs, q, goal = _prior_observation(biped, [0.0, 0.5, 1.0])
     hold = JointPrior(biped, scale, seek=False)(obs)
     seek = JointPrior(biped, scale, seek=True)(obs)
     torch.testing.assert_close(hold, (q - nominal) / scale)
@@ -121,16 +127,10 @@ def test_faded_residual_leaves_the_end_of_the_fall_to_the_prior(biped):
 def test_prior_power_keeps_the_hold_and_the_residual_longer_and_still_ends_at_the_target(biped):
     """train.prior_power: the prior seeks and fades by u^p, so mid-fall it is nearer the hold and keeps
     more of the learned deviation, and at u = 1 it is the target joints alone, as with p = 1."""
-    from fallkit.env.observations import actor_slices
     from fallkit.rl.models import JointPrior
 
-    cols = actor_slices(biped)
-    j, scale = len(biped.joints), 0.5
-    nominal = torch.as_tensor(biped.nominal_q()).float()
-    obs = torch.zeros(2, cols["blend"].stop)
-    q, goal = torch.randn(2, j) * 0.3, torch.randn(2, j) * 0.3
-    obs[:, cols["joint_pos"]], obs[:, cols["goal_joint_pos"]] = q, goal
-    obs[:, cols["blend"]] = torch.tensor([[0.5], [1.0]])
+    scale, nominal = 0.5, torch.as_tensor(biped.nominal_q()).float()
+    obs, q, goal = _prior_observation(biped, [0.5, 1.0])
     prior = JointPrior(biped, scale, seek=True, fade=True, power=3.0)
     torch.testing.assert_close(prior(obs)[0], (q[0] + 0.125 * (goal[0] - q[0]) - nominal) / scale)  # 0.5³
     torch.testing.assert_close(prior.residual_weight(obs)[0], torch.tensor([0.875]))
