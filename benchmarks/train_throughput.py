@@ -73,7 +73,7 @@ def measure(args, envs: int) -> dict:
     critic_dim = env.observation_spec["critic"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, joint_prior(config, spec)).to(device)
-    critic = make_critic(critic_dim, tc.critic_hidden).to(device)
+    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(device)
     ppo = PPO(actor, critic, tc.ppo)
     td = env.reset()
 
@@ -127,7 +127,7 @@ def measure(args, envs: int) -> dict:
         batch_size=shape, device=device,
     )  # fmt: skip
     actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std).to(device)
-    ppo2 = PPO(actor2, make_critic(critic_dim, tc.critic_hidden).to(device), tc.ppo)
+    ppo2 = PPO(actor2, make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(device), tc.ppo)
     torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())
     sync()

@@ -157,3 +157,17 @@ def test_a_checkpoint_saved_before_prior_power_existed_keeps_the_power_it_was_tr
     save_checkpoint(tmp_path / "old.pt", {"iteration": 1, "config": config})
     assert validate(load_checkpoint(tmp_path / "old.pt")["config"]).train.prior_power == 1.0
     assert validate({"robot": {"name": "biped20"}}).train.prior_power == 8.0  # today's default
+
+
+def test_value_target_statistics_move_without_changing_a_predicted_value():
+    from fallkit.rl.models import ValueNet
+
+    torch.manual_seed(0)
+    net = ValueNet(5, [8, 8], normalize_target=True)
+    obs = torch.randn(64, 5)
+    before = net(obs)
+    for mean in (-50.0, -20.0):  # returns of a run that improves
+        net.update_target_statistics(mean + 10.0 * torch.randn(512))
+        torch.testing.assert_close(net(obs), before, atol=1e-4, rtol=1e-5)  # PopArt's preserving step
+    assert -45.0 < net.target.mean.item() < -25.0 and net.target_std().item() > 10.0
+    assert ValueNet(5, [8]).target is None  # off: the network and its state_dict are the old ones

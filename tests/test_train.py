@@ -57,6 +57,18 @@ def test_resume_continues_exactly(tmp_path):
     assert_same_weights(actor_of(straight), actor_of(resumed))
 
 
+def test_normalized_values_train_log_their_statistics_and_load_with_the_policy(tmp_path):
+    from fallkit.rl.policy import load_policy
+
+    run = train(tmp_path / "run", "train.iterations=2", "train.ppo.normalize_value=true")
+    critic = load_checkpoint(run)["critic"]
+    assert critic["module.target.count"] > 0 and critic["module.target.mean"] < 0  # returns are penalties
+    header = (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {"value_target_mean", "value_target_std", "actor_grad_norm", "critic_grad_norm"} <= set(header)
+    loaded = load_policy(run)
+    assert torch.equal(loaded.critic.target.mean, critic["module.target.mean"])
+
+
 def test_resume_from_corrupt_checkpoint_is_a_clear_error(tmp_path):
     from fallkit.rl.checkpoint import CheckpointError
 
@@ -99,6 +111,7 @@ def test_torchrun_two_ranks_on_gloo(tmp_path):
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     r = subprocess.run(
         [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "fallkit", *TINY, "train.iterations=2",
+         "train.ppo.normalize_value=true",  # its target statistics are merged over the ranks too
          "hydra.run.dir=run"],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip

@@ -38,6 +38,11 @@ class PPOConfig(Section):
         gt=0,
         description="the critic's own fixed Adam rate; null = the actor's KL-adaptive rate (rsl_rl, the paper)",
     )
+    normalize_value: bool = Field(
+        False,
+        description="the critic predicts values in units of the running mean and std of the value targets (the "
+        "loss too), its last layer rescaled as they move (PopArt's preserving step; fallkit.rl.models.ValueNet)",
+    )
     mirror: bool = Field(
         False,
         description="left-right symmetry augmentation: every minibatch also trains on its mirror image (mirrored "

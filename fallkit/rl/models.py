@@ -138,13 +138,39 @@ class GaussianPolicyNet(nn.Module):
 
 
 class ValueNet(nn.Module):
-    def __init__(self, obs_dim: int, hidden: list[int]):
+    """obs -> state value. With `normalize_target` the MLP predicts the value in units of the running
+    statistics of the value targets (`target`), and the output is scaled back: returns of about −50
+    (−2 to −300 with drawn sensitivities) become O(1) targets the last layer reaches in a few steps.
+    """
+
+    def __init__(self, obs_dim: int, hidden: list[int], normalize_target: bool = False):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
         self.value = mlp(obs_dim, hidden, 1)
+        self.target = RunningNorm(1) if normalize_target else None
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.value(self.norm(obs))
+        v = self.value(self.norm(obs))
+        if self.target is not None:
+            v = torch.addcmul(self.target.mean, v, self.target_std())
+        return v
+
+    def target_std(self) -> torch.Tensor:
+        return torch.sqrt(self.target.var + self.target.eps)
+
+    @torch.no_grad()
+    def update_target_statistics(self, targets: torch.Tensor, merge=None) -> None:
+        """Merge value targets into `target` (then `merge(target)`, e.g. across ranks) and rescale the last
+        layer so every value the network predicts stays what it was (PopArt's preserving step): the
+        statistics move, the values GAE and the loss already hold stay true."""
+        old_mean, old_std = self.target.mean.clone(), self.target_std()
+        self.target.update(targets.reshape(-1, 1))
+        if merge is not None:
+            merge(self.target)
+        new_mean, new_std = self.target.mean, self.target_std()
+        last = self.value[-1]
+        last.weight.mul_(old_std / new_std)
+        last.bias.mul_(old_std).add_(old_mean - new_mean).div_(new_std)
 
 
 def make_actor(
@@ -165,9 +191,9 @@ def make_actor(
     )
 
 
-def make_critic(obs_dim: int, hidden: list[int]) -> ValueOperator:
+def make_critic(obs_dim: int, hidden: list[int], normalize_target: bool = False) -> ValueOperator:
     """TensorDict keys: "critic" -> "state_value"."""
-    return ValueOperator(ValueNet(obs_dim, hidden), in_keys=["critic"], out_keys=["state_value"])
+    return ValueOperator(ValueNet(obs_dim, hidden, normalize_target), in_keys=["critic"], out_keys=["state_value"])
 
 
 def policy_net(actor: ProbabilisticActor) -> GaussianPolicyNet:

@@ -11,7 +11,10 @@ One call of `PPO.update(batch)` is one iteration's learning:
   3. Before each minibatch's step, the KL between the collecting policy and the
      current one (exact, for diagonal Gaussians) adapts the learning rate as rsl_rl
      does: KL > 2·target → lr / 1.5, KL < target / 2 → lr · 1.5, within [lr_min, lr_max].
-  4. With `mirror` (symmetric robots, fallkit.env.mirror), each minibatch is extended by its
+  4. With `normalize_value`, the value targets join the critic's running target statistics
+     first (its outputs preserved, `ValueNet.update_target_statistics`) and the value loss is
+     taken in those units, so its gradients are O(1) whatever the scale of the returns.
+  5. With `mirror` (symmetric robots, fallkit.env.mirror), each minibatch is extended by its
      mirror image before the loss: mirrored policy and critic observations and actions with
      the original advantage, value target, old value and old log-probability (rsl_rl's
      symmetry augmentation), so every sample also teaches the mirrored fall. The KL above
@@ -35,7 +38,7 @@ from torchrl.objectives.value import GAE
 
 from fallkit.config import PPOConfig
 from fallkit.env.mirror import ObservationMirror
-from fallkit.rl.models import GaussianPolicyNet, policy_net
+from fallkit.rl.models import GaussianPolicyNet, RunningNorm, policy_net, value_net
 
 
 def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:
@@ -100,11 +103,15 @@ class PPO:
         cfg = self.cfg
         with torch.no_grad():
             self.gae(batch)
+        critic_net = value_net(self.critic)
+        if critic_net.target is not None:
+            critic_net.update_target_statistics(batch[self.loss.tensor_keys.value_target], merge=merge_over_ranks)
         flat = batch.reshape(-1)
         n = flat.shape[0]
         mb = n // cfg.num_minibatches
         net = policy_net(self.actor)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "kl": 0.0, "clip_fraction": 0.0}
+        grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
         if self.mirror is not None:
             sums["mirror_loss"] = 0.0
         count = 0
@@ -128,27 +135,45 @@ class PPO:
                 if self.mirror is not None:
                     data = self._with_mirror_image(data)
                 out = self.loss(data)
-                loss = out["loss_objective"] + out["loss_critic"]
+                loss_critic = out["loss_critic"]
+                if critic_net.target is not None:  # in units of the target statistics
+                    loss_critic = loss_critic / critic_net.target_std().square()
+                loss = out["loss_objective"] + loss_critic
                 if "loss_entropy" in out.keys():
                     loss = loss + out["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 _average_gradients(self.params)
+                grad_norms += self._group_grad_norms()
                 torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.optimizer.step()
 
                 sums["loss_objective"] += out["loss_objective"].item()
-                sums["loss_critic"] += out["loss_critic"].item()
+                sums["loss_critic"] += loss_critic.item()
                 sums["loss_entropy"] += out["loss_entropy"].item() if "loss_entropy" in out.keys() else 0.0
                 sums["clip_fraction"] += out["clip_fraction"].item() if "clip_fraction" in out.keys() else 0.0
                 sums["kl"] += kl.item()
                 count += 1
         stats = {k: v / count for k, v in sums.items()}
+        stats["actor_grad_norm"], stats["critic_grad_norm"] = (grad_norms / count).tolist()
+        if critic_net.target is not None:
+            stats["value_target_mean"] = critic_net.target.mean.item()
+            stats["value_target_std"] = critic_net.target_std().item()
         stats["learning_rate"] = self.learning_rate
         stats["action_std"] = net.log_std.exp().mean().item()
         # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
         stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
         return stats
+
+    def _group_grad_norms(self) -> torch.Tensor:
+        """[actor, critic] gradient norms before clipping: one clip over both, so a critic whose
+        gradients dwarf the actor's shrinks the actor's step too — these say when it does."""
+        return torch.stack(
+            [
+                torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in group["params"] if p.grad is not None]))
+                for group in self.optimizer.param_groups
+            ]
+        )
 
     def _with_mirror_image(self, data: TensorDict) -> TensorDict:
         """The minibatch followed by its mirror image (what the loss reads, nothing else).
@@ -192,6 +217,17 @@ def _average_gradients(params: list[torch.Tensor]) -> None:
             p.grad = g
         p.grad.copy_(flat[offset : offset + size].view_as(g))
         offset += size
+
+
+def merge_over_ranks(norm: RunningNorm) -> None:
+    """Average running statistics over the ranks, so every rank normalises alike (no-op on one process)."""
+    if not distributed():
+        return
+    stats = torch.cat([norm.mean, norm.var, norm.count.reshape(1)])
+    dist.all_reduce(stats)
+    stats /= dist.get_world_size()
+    d = norm.mean.numel()
+    norm.merge_(stats[:d], stats[d : 2 * d], stats[2 * d])
 
 
 def _mean_over_ranks(x: torch.Tensor) -> torch.Tensor:

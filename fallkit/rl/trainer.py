@@ -37,7 +37,7 @@ from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
-from fallkit.rl.ppo import PPO, distributed
+from fallkit.rl.ppo import PPO, distributed, merge_over_ranks
 from fallkit.robots import robot_spec
 
 log = logging.getLogger(__name__)
@@ -58,13 +58,15 @@ class Trainer:
         torch.manual_seed(seed)
         self.spec = robot_spec(config.robot)
         # before anything is built: a robot without a mirror map is a one-line config error
-        mirror = observation_mirror(self.spec, sensitivity=config.env.sensitivity_inputs.enabled) if tc.ppo.mirror else None
+        mirror = observation_mirror(
+            self.spec, sensitivity=config.env.sensitivity_inputs.enabled, gravity=config.env.observe_gravity
+        ) if tc.ppo.mirror else None
         self.env = make_env(config, self.spec, split="train", seed=seed)
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
         prior = joint_prior(config, self.spec)
         self.actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior).to(self.env.device)
-        self.critic = make_critic(critic_dim, tc.critic_hidden).to(self.env.device)
+        self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(self.env.device)
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
@@ -275,12 +277,7 @@ def _update_normalizers(actor, critic, batch: TensorDict, mirror: ObservationMir
             flip = mirror.actor if key == "policy" else mirror.critic
             obs = torch.cat([obs, flip(obs)])
         norm.update(obs)
-        if distributed():  # average the statistics so every rank normalises alike
-            stats = torch.cat([norm.mean, norm.var, norm.count.reshape(1)])
-            dist.all_reduce(stats)
-            stats /= dist.get_world_size()
-            d = norm.mean.numel()
-            norm.merge_(stats[:d], stats[d : 2 * d], stats[2 * d])
+        merge_over_ranks(norm)
 
 
 def _check_ranks_in_sync(actor) -> None:
