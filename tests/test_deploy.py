@@ -86,8 +86,9 @@ def _parity(run: Path, export: Path, poses: str | None = None, worlds: int = 3) 
     return compared
 
 
-def test_controller_equals_env_and_policy_over_full_falls_biped20(tmp_path):
-    run, export = exported(tmp_path, "robot=biped20")
+@pytest.mark.parametrize("options", [[], ["env.observe_gravity=true"]], ids=["plain", "observe_gravity"])
+def test_controller_equals_env_and_policy_over_full_falls_biped20(tmp_path, options):
+    run, export = exported(tmp_path, "robot=biped20", *options)
     assert _parity(run, export) == 3 * 150  # 3 falls of 3 s at 50 Hz
     meta = json.loads((export / "policy.json").read_text())
     assert meta["clip_setpoints"] is True and meta["base_body"]

@@ -40,21 +40,32 @@ def tiny_run(tmp_path_factory) -> Path:
     return run
 
 
-def eval_env(spec, worlds: int, poses: int = 9) -> FallEnv:
+@pytest.fixture(scope="module")
+def tiny_run_gravity(tmp_path_factory) -> Path:
+    """The same, trained with env.observe_gravity (the goal is in two parts of the observation)."""
+    from fallkit.rl.trainer import Trainer
+
+    run = tmp_path_factory.mktemp("choice_gravity") / "run"
+    Trainer(composed_config(*TINY, "train.iterations=2", "env.observe_gravity=true"), run).run()
+    return run
+
+
+def eval_env(spec, worlds: int, poses: int = 9, gravity: bool = False) -> FallEnv:
     """mode=eval's env settings, 0.2 s falls, `poses` random (unsettled) end poses as the candidates."""
-    cfg = ev.eval_run_config(composed_config("robot=biped20"), 0.2)
+    cfg = ev.eval_run_config(composed_config("robot=biped20", f"env.observe_gravity={gravity}"), 0.2)
     candidates = random_end_poses(spec, poses, torch.Generator().manual_seed(1))
     return FallEnv(spec, cfg.env, cfg.reward, candidates, make_sim(spec, worlds, body_state=True), seed=3)
 
 
-def test_the_critic_scorer_chooses_the_argmax_of_the_critic_over_the_candidates(biped, tiny_run):
+@pytest.mark.parametrize("gravity", [False, True], ids=["plain", "observe_gravity"])
+def test_the_critic_scorer_chooses_the_argmax_of_the_critic_over_the_candidates(biped, gravity, request):
     """V(s, g) scored in one batch equals the critic on the env's own observation with each candidate
     set as the fall's real goal (env.reset_to toward it), and the chosen pose is its argmax."""
     from fallkit.rl.policy import load_policy
 
-    critic = load_policy(tiny_run).critic
+    critic = load_policy(request.getfixturevalue("tiny_run_gravity" if gravity else "tiny_run")).critic
     n, p = 5, 9
-    env = eval_env(biped, n, p)
+    env = eval_env(biped, n, p, gravity)
     trials = ev.draw_trials(env, n, SEED)
     batched = candidate_values(env, critic, start_states(env, trials))
     direct = torch.empty(n, p)

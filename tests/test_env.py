@@ -207,3 +207,34 @@ def test_path_frame_matches_the_rotation_helpers():
     h = heading_quat(q)
     v = torch.randn(500, 7, 3)
     torch.testing.assert_close(frame.into(v), quat_rotate_inverse(h[:, None].expand(-1, 7, -1), v))
+
+
+def test_observed_up_axes_are_what_the_orientation_reward_compares(biped, poses):
+    """env.observe_gravity: the actor sees R(θ)ᵀe_z and R(θ̂)ᵀe_z, the orientation term is −u‖g − ĝ‖²
+    of exactly those columns, and every column of the plain layout keeps its place."""
+    from fallkit.env.observations import actor_slices
+    from fallkit.rotations import gravity_in_frame
+
+    only_orientation = RewardConfig(**{t: 0.0 for t in BUILTIN_TERMS} | {"orientation": 1.0})
+    cfg = QUIET.model_copy(update={"observe_gravity": True})
+    plain, up = (make_env(biped, poses, n=4, env_cfg=c, reward_cfg=only_orientation) for c in (QUIET, cfg))
+    qpos, qvel = InitialStateSampler(biped).sample(4, torch.Generator().manual_seed(5))
+    ids = torch.tensor([0, 3, 7, 11])
+    tds = [env.reset_to(qpos, qvel, ids) for env in (plain, up)]
+    cols = actor_slices(biped, gravity=True)
+    assert env_width(plain) + 6 == env_width(up) and cols["blend"] == actor_slices(biped)["blend"]
+    hold = up.last_action.clone()
+    for _ in range(80):  # 1.6 s: u(t) > 0, the robots on the floor
+        tds = [env.step(TensorDict({"action": hold}, batch_size=[4]))["next"] for env in (plain, up)]
+    obs = tds[1]["policy"]
+    torch.testing.assert_close(obs[:, : env_width(plain)], tds[0]["policy"])
+    torch.testing.assert_close(obs[:, cols["gravity"]], gravity_in_frame(up.sim.state.root_quat), atol=1e-6, rtol=0)
+    torch.testing.assert_close(obs[:, cols["goal_gravity"]], gravity_in_frame(poses.root_quat[ids].float()), atol=1e-6, rtol=0)
+    distance = (obs[:, cols["gravity"]] - obs[:, cols["goal_gravity"]]).square().sum(-1)
+    reward = tds[1]["reward"].view(-1)
+    assert distance.min() > 0.01 and (reward < 0).all()
+    torch.testing.assert_close(reward / distance, (reward / distance)[:1].expand(4), rtol=1e-4, atol=0)
+
+
+def env_width(env) -> int:
+    return env.observation_spec["policy"].shape[-1]

@@ -82,9 +82,9 @@ def test_mirroring_twice_is_the_identity(biped):
     assert torch.equal(m.mirror_qpos(m.mirror_qpos(qpos)), qpos) and torch.equal(m.mirror_qvel(m.mirror_qvel(qvel)), qvel)
 
 
-def critic_slices(spec) -> list[tuple[str, slice]]:
+def critic_slices(spec, gravity: bool = False) -> list[tuple[str, slice]]:
     out, start = [], 0
-    for name, size in critic_layout(spec):
+    for name, size in critic_layout(spec, gravity=gravity):
         out.append((name, slice(start, start + size)))
         start += size
     return out
@@ -98,7 +98,8 @@ def mirrored_poses(spec, poses: EndPoseSet) -> EndPoseSet:
                       torch.cat((poses.root_quat, quat)))  # fmt: skip
 
 
-def test_the_mirrored_fall_is_the_mirror_image_of_the_fall(biped):
+@pytest.mark.parametrize("gravity", [False, True], ids=["plain", "observe_gravity"])
+def test_the_mirrored_fall_is_the_mirror_image_of_the_fall(biped, gravity):
     """The strongest check: the real simulator, a fall and its mirror image side by side.
 
     Worlds 0..n-1 start from drawn falling states with drawn end poses and take random actions a;
@@ -114,12 +115,13 @@ def test_the_mirrored_fall_is_the_mirror_image_of_the_fall(biped):
     an error of order 1 (the next test).
     """
     n = 4
-    mirror, m = observation_mirror(biped), biped.mirror_map
+    mirror, m = observation_mirror(biped, gravity=gravity), biped.mirror_map
     poses = mirrored_poses(biped, random_end_poses(biped, n, torch.Generator().manual_seed(1)))
-    env = FallEnv(biped, QUIET, RewardConfig(), poses, make_sim(biped, 2 * n, "mujoco", body_state=True), seed=0)
+    cfg = QUIET.model_copy(update={"observe_gravity": gravity})
+    env = FallEnv(biped, cfg, RewardConfig(), poses, make_sim(biped, 2 * n, "mujoco", body_state=True), seed=0)
     qpos, qvel = InitialStateSampler(biped).sample(n, torch.Generator().manual_seed(2))
     td = env.reset_to(torch.cat((qpos, m.mirror_qpos(qpos))), torch.cat((qvel, m.mirror_qvel(qvel))), torch.arange(2 * n))
-    acc = dict(critic_slices(biped))["body_acc"]
+    acc = dict(critic_slices(biped, gravity))["body_acc"]
     rest = torch.ones(len(mirror.critic.index), dtype=torch.bool)
     rest[acc] = False
 

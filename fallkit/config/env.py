@@ -144,6 +144,11 @@ class EnvConfig(Section):
         description="the actor observes u(t), the tracking blend of the time since the fall began (a clock the "
         "robot keeps); false feeds it a zero, as the paper's actor, which does not observe time",
     )
+    observe_gravity: bool = Field(
+        False,
+        description="the actor (and critic) also observe the world up axis in the root frame and in the end pose's "
+        "root frame, the two vectors the orientation reward compares (the quaternions stay observed too)",
+    )
     poses: str = Field(
         "default", description="end-pose source: 'default' (the robot's dataset), a .npz dataset or a .yaml pose file"
     )

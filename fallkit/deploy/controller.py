@@ -29,6 +29,7 @@ import numpy as np
 from fallkit.deploy.state import EndPose, RobotState, check_state, read_policy_json
 from fallkit.errors import DeployError
 from fallkit.pose_choice import PIVOT_HEIGHT, SIDES, choose_by_heading, side_counts, side_rows
+from fallkit.pose_format import gravity_in_frame
 
 _META_KEYS = ("robot", "joint_names", "policy_hz", "action_scale", "nominal_pose", "joint_limits", "pd_gains",
               "observation_size", "observation_layout", "tracking_blend")  # fmt: skip
@@ -102,6 +103,7 @@ class FallController:
         self._q, self._qd = np.zeros(j), np.zeros(j)  # policy order
         self._last, self._last_last = np.zeros(j), np.zeros(j)
         self._goal_tilt, self._goal_q = np.zeros(4), np.zeros(j)
+        self._goal_gravity = np.zeros(3)  # the end pose's up axis (policies trained with env.observe_gravity)
         self._setpoint = np.zeros(j)  # policy order
         self.steps = 0  # policy steps since reset: t = steps * dt
         self.missed = 0  # steps without a state since reset
@@ -182,6 +184,7 @@ class FallController:
         q, quat = end_pose.resolve(self.joint_names, self.limits)
         self._goal_q[:] = q
         tilt_into(quat, self._goal_tilt)
+        self._goal_gravity[:] = gravity_in_frame(self._goal_tilt)
         self.steps = self.missed = 0
         self._started = False
 
@@ -270,6 +273,9 @@ class FallController:
         o[s["goal_root_quat"]] = self._goal_tilt
         o[s["goal_joint_pos"]] = self._goal_q
         o[s["blend"]] = tracking_blend(self.steps * self.dt, self.blend_time) if self.observe_blend else 0.0
+        if "gravity" in s:  # yaw-invariant: the path-frame quaternion gives the world one's up axis
+            o[s["gravity"]] = gravity_in_frame(o[s["root_quat"]])
+            o[s["goal_gravity"]] = self._goal_gravity
         if "sensitivity" in s:
             o[s["sensitivity"]] = self._sensitivity_input
 
@@ -325,14 +331,17 @@ def _check_layout(meta: dict, j: int) -> dict[str, slice]:
     """policy.json's observation layout must be the one this controller builds."""
     layout = meta["observation_layout"]
     names = tuple(p["name"] for p in layout)
-    expected = _LAYOUT + (("sensitivity",) if "sensitivity" in meta else ())
+    gravity = bool(meta.get("observe_gravity", False))  # exports made before the option existed: without
+    expected = _LAYOUT + (("gravity", "goal_gravity") if gravity else ())
+    expected += ("sensitivity",) if "sensitivity" in meta else ()
     if names != expected:
         raise DeployError(
             f"policy.json: observation layout {list(names)} is not the one this fallkit builds {list(expected)}; "
             "export the policy with the same fallkit version as this controller"
         )
     per_joint = {"joint_pos", "joint_vel", "last_action", "last_last_action", "goal_joint_pos"}
-    sizes = {"root_quat": 4, "root_lin_vel": 3, "root_ang_vel": 3, "goal_root_quat": 4, "blend": 1}
+    sizes = {"root_quat": 4, "root_lin_vel": 3, "root_ang_vel": 3, "goal_root_quat": 4, "blend": 1, "gravity": 3,
+             "goal_gravity": 3}
     if "sensitivity" in meta:
         sizes["sensitivity"] = len(meta["sensitivity"]["components"])
     out = {}

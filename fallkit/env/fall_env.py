@@ -82,6 +82,7 @@ class FallEnv(EnvBase):
         self.max_steps = max(1, round(env_cfg.episode_length / self.dt))
         self.action_scale = env_cfg.action_scale
         self.observes_sensitivity = env_cfg.sensitivity_inputs.enabled
+        self.observes_gravity = env_cfg.observe_gravity
 
         # seeded generators owned by the env: CPU for the MuJoCo-based initial-state
         # sampler, the sim's device for everything drawn per step
@@ -296,7 +297,7 @@ class FallEnv(EnvBase):
         self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
         self.robot_sensitivity = torch.as_tensor(spec.sensitivity, **f32)  # [C]
         self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
-        std = noise_std(spec, self.env_cfg.noise, self.observes_sensitivity)
+        std = noise_std(spec, self.env_cfg.noise, self.observes_sensitivity, self.observes_gravity)
         noisy = std.nonzero()
         # noise is drawn for the measured columns only (a prefix of the layout)
         self._noise_cols = int(noisy.max()) + 1 if len(noisy) else 0
@@ -321,8 +322,9 @@ class FallEnv(EnvBase):
     def _make_specs(self) -> None:
         """TorchRL's observation, action, reward and done specs (see the module docstring)."""
         n, dev, spec = self.num_envs, self.device, self.spec
-        da = sum(s for _, s in actor_layout(spec, self.observes_sensitivity))
-        dc = sum(s for _, s in critic_layout(spec, self.observes_sensitivity))
+        options = (self.observes_sensitivity, self.observes_gravity)
+        da = sum(s for _, s in actor_layout(spec, *options))
+        dc = sum(s for _, s in critic_layout(spec, *options))
         self.observation_spec = Composite(
             policy=Unbounded((n, da), device=dev),
             critic=Unbounded((n, dc), device=dev),
@@ -345,7 +347,7 @@ class FallEnv(EnvBase):
         actor = actor_observation(
             frame, st.root_quat, st.root_lin_vel, st.root_ang_vel, st.joint_pos, st.joint_vel,
             self.last_action, self.last_last_action, self.goal_root_quat, self.goal_joint_pos, observed,
-            self.sensitivity if self.observes_sensitivity else None,
+            self.sensitivity if self.observes_sensitivity else None, self.observes_gravity,
         )  # fmt: skip
         critic = critic_observation(
             actor, frame, self.step_count * (1.0 / self.max_steps), self.randomization.friction, st.root_pos[:, 2],

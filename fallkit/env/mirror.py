@@ -69,13 +69,14 @@ class ObservationMirror:
 
 
 def observation_mirror(
-    spec: RobotSpec, device: torch.device | str = "cpu", sensitivity: bool = False
+    spec: RobotSpec, device: torch.device | str = "cpu", sensitivity: bool = False, gravity: bool = False
 ) -> ObservationMirror:
-    """The robot's observation and action mirrors (`sensitivity`: observations with the sensitivity inputs);
-    a ConfigError naming the reason when it has no mirror map."""
+    """The robot's observation and action mirrors (`sensitivity`, `gravity`: observations with the sensitivity
+    inputs, the up axes); a ConfigError naming the reason when it has no mirror map."""
     mirror = require_mirror_map(spec)
+    options = (sensitivity, gravity)
     return ObservationMirror(
-        actor_mirror(spec, mirror, sensitivity), critic_mirror(spec, mirror, sensitivity), action_mirror(spec, mirror)
+        actor_mirror(spec, mirror, *options), critic_mirror(spec, mirror, *options), action_mirror(spec, mirror)
     ).to(device)
 
 
@@ -94,19 +95,23 @@ def action_mirror(spec: RobotSpec, mirror: MirrorMap) -> SignedPermutation:
     return _signed_permutation([_columns("joint", 0, len(spec.joints), mirror, spec)])
 
 
-def actor_mirror(spec: RobotSpec, mirror: MirrorMap, sensitivity: bool = False) -> SignedPermutation:
+def actor_mirror(
+    spec: RobotSpec, mirror: MirrorMap, sensitivity: bool = False, gravity: bool = False
+) -> SignedPermutation:
     """The actor observation [.., Da], part by part as `ACTOR_OBSERVATION` declares it."""
     parts, start = [], 0
-    for part in observed_parts(sensitivity):
+    for part in observed_parts(sensitivity, gravity):
         parts.append(_columns(_actor_kind(part.name), start, part.width(spec), mirror, spec))
         start += part.width(spec)
     return _signed_permutation(parts)
 
 
-def critic_mirror(spec: RobotSpec, mirror: MirrorMap, sensitivity: bool = False) -> SignedPermutation:
+def critic_mirror(
+    spec: RobotSpec, mirror: MirrorMap, sensitivity: bool = False, gravity: bool = False
+) -> SignedPermutation:
     """The critic observation [.., Dc]: the actor's parts, then the privileged ones (`PRIVILEGED_MIRROR`)."""
     parts, start = [], 0
-    for name, size in critic_layout(spec, sensitivity):
+    for name, size in critic_layout(spec, sensitivity, gravity):
         if name.startswith("actor."):
             kind = _actor_kind(name.removeprefix("actor."))
         elif name in PRIVILEGED_MIRROR:

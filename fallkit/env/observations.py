@@ -27,7 +27,7 @@ import torch
 
 from fallkit.config import ObservationNoise
 from fallkit.robots.spec import RobotSpec
-from fallkit.rotations import quat_rotate_inverse
+from fallkit.rotations import gravity_in_frame, quat_rotate_inverse
 
 MIN_SENSITIVITY = 1e-3  # a weight of 0 is observed as this one: ln 0 is not a number
 
@@ -45,9 +45,10 @@ class ObservationPart:
     # How it reflects through the robot's sagittal plane (fallkit.env.mirror: quat, vector, pseudovector,
     # joint, scalar). No default on purpose: a new part without one is an error there, not a silent guess.
     mirror: str | None = None
-    # Only in the observation of a policy trained with env.sensitivity_inputs (the last part, so the columns
-    # of every other part are the same with and without it).
-    sensitivity_input: bool = False
+    # The env option that adds this part (env.observe_gravity: "gravity"; env.sensitivity_inputs:
+    # "sensitivity"); None: always observed. Optional parts come after every other part, so the columns
+    # of the parts before them are the same with and without them.
+    option: str | None = None
 
     def width(self, spec: RobotSpec) -> int:
         if self.per_component:
@@ -67,13 +68,17 @@ ACTOR_OBSERVATION: tuple[ObservationPart, ...] = (
     ObservationPart("goal_root_quat", 4, doc="end-pose root orientation in the path frame (see FallEnv)", mirror="quat"),
     ObservationPart("goal_joint_pos", 1, per_joint=True, doc="end-pose joint angles [rad]", mirror="joint"),
     ObservationPart("blend", 1, doc="u(t), the tracking blend of the time since the fall began (0 -> 1 over T_blend)", mirror="scalar"),
-    ObservationPart("sensitivity", 1, per_component=True, doc=f"ln max(w_c, {MIN_SENSITIVITY:g}) of every component, robot order", mirror="component", sensitivity_input=True),
+    ObservationPart("gravity", 3, noise="root_quat", doc="R(θ)ᵀe_z: the world up axis in the root frame (the orientation reward's vector)", mirror="vector", option="gravity"),
+    ObservationPart("goal_gravity", 3, doc="R(θ̂)ᵀe_z: the world up axis in the end pose's root frame", mirror="vector", option="gravity"),
+    ObservationPart("sensitivity", 1, per_component=True, doc=f"ln max(w_c, {MIN_SENSITIVITY:g}) of every component, robot order", mirror="component", option="sensitivity"),
 )  # fmt: skip
 
 
-def observed_parts(sensitivity: bool = False) -> tuple[ObservationPart, ...]:
-    """The parts of the actor observation, with the sensitivity inputs or without (env.sensitivity_inputs)."""
-    return tuple(p for p in ACTOR_OBSERVATION if sensitivity or not p.sensitivity_input)
+def observed_parts(sensitivity: bool = False, gravity: bool = False) -> tuple[ObservationPart, ...]:
+    """The parts of the actor observation, with or without the sensitivity inputs (env.sensitivity_inputs)
+    and the up axes (env.observe_gravity)."""
+    options = {"sensitivity": sensitivity, "gravity": gravity}
+    return tuple(p for p in ACTOR_OBSERVATION if p.option is None or options[p.option])
 
 
 def sensitivity_input(weights: torch.Tensor) -> torch.Tensor:
@@ -82,33 +87,33 @@ def sensitivity_input(weights: torch.Tensor) -> torch.Tensor:
     return weights.clamp(min=MIN_SENSITIVITY).log()
 
 
-def actor_layout(spec: RobotSpec, sensitivity: bool = False) -> list[tuple[str, int]]:
-    """(name, size) of each part of the actor observation, in order; `sensitivity`: with the sensitivity inputs."""
-    return [(part.name, part.width(spec)) for part in observed_parts(sensitivity)]
+def actor_layout(spec: RobotSpec, sensitivity: bool = False, gravity: bool = False) -> list[tuple[str, int]]:
+    """(name, size) of each part of the actor observation, in order; `sensitivity`, `gravity`: with those options."""
+    return [(part.name, part.width(spec)) for part in observed_parts(sensitivity, gravity)]
 
 
-def actor_slices(spec: RobotSpec, sensitivity: bool = False) -> dict[str, slice]:
+def actor_slices(spec: RobotSpec, sensitivity: bool = False, gravity: bool = False) -> dict[str, slice]:
     """Columns of each part of the actor observation."""
     out, start = {}, 0
-    for name, size in actor_layout(spec, sensitivity):
+    for name, size in actor_layout(spec, sensitivity, gravity):
         out[name] = slice(start, start + size)
         start += size
     return out
 
 
-def describe_actor_observation(spec: RobotSpec, sensitivity: bool = False) -> list[dict]:
+def describe_actor_observation(spec: RobotSpec, sensitivity: bool = False, gravity: bool = False) -> list[dict]:
     """The layout as plain data (name, start, size, noise field, meaning): the export's metadata."""
-    slices = actor_slices(spec, sensitivity)
+    slices = actor_slices(spec, sensitivity, gravity)
     return [
         {"name": p.name, "start": slices[p.name].start, "size": p.width(spec), "noise": p.noise, "meaning": p.doc}
-        for p in observed_parts(sensitivity)
+        for p in observed_parts(sensitivity, gravity)
     ]
 
 
-def critic_layout(spec: RobotSpec, sensitivity: bool = False) -> list[tuple[str, int]]:
+def critic_layout(spec: RobotSpec, sensitivity: bool = False, gravity: bool = False) -> list[tuple[str, int]]:
     """(name, size) of each part of the critic observation, in order."""
     b = spec.mj_model().nbody - 1  # without the world body
-    return [(f"actor.{n}", s) for n, s in actor_layout(spec, sensitivity)] + [
+    return [(f"actor.{n}", s) for n, s in actor_layout(spec, sensitivity, gravity)] + [
         ("phase", 1), ("friction", 1), ("root_height", 1), ("body_height", b), ("body_vel", 6 * b), ("body_acc", 6 * b),
     ]  # fmt: skip
 
@@ -121,12 +126,14 @@ PRIVILEGED_MIRROR: dict[str, str] = {
 }  # fmt: skip
 
 
-def noise_std(spec: RobotSpec, noise: ObservationNoise, sensitivity: bool = False) -> torch.Tensor:
+def noise_std(
+    spec: RobotSpec, noise: ObservationNoise, sensitivity: bool = False, gravity: bool = False
+) -> torch.Tensor:
     """Per-dimension std [Da] of the actor noise (0 for the parts declared without noise)."""
     return torch.cat(
         [
             torch.full((p.width(spec),), getattr(noise, p.noise) * noise.scale if p.noise else 0.0)
-            for p in observed_parts(sensitivity)
+            for p in observed_parts(sensitivity, gravity)
         ]
     )
 
@@ -197,11 +204,13 @@ def actor_observation(
     goal_joint_pos: torch.Tensor,
     blend: torch.Tensor,
     sensitivity: torch.Tensor | None = None,
+    gravity: bool = False,
 ) -> torch.Tensor:
     """Noiseless actor observation [N, Da]; root_lin_vel in world, root_ang_vel in root frame (as SimState).
 
     blend [N]: u(t), or zeros where the actor does not observe time (env.observe_blend=false).
     sensitivity [N, C]: the weights w_c of every world, for a policy with sensitivity inputs; None without.
+    gravity: with the up axes of the root and of the end pose (env.observe_gravity).
     """
     parts = {
         "root_quat": frame.tilt,
@@ -215,9 +224,12 @@ def actor_observation(
         "goal_joint_pos": goal_joint_pos,
         "blend": blend.view(-1, 1),
     }
+    if gravity:  # yaw-invariant: the same from the world quaternion and from the path-frame one
+        parts["gravity"] = gravity_in_frame(frame.tilt)
+        parts["goal_gravity"] = gravity_in_frame(goal_root_quat)
     if sensitivity is not None:
         parts["sensitivity"] = sensitivity_input(sensitivity)
-    return torch.cat([parts[p.name] for p in observed_parts(sensitivity is not None)], dim=-1)
+    return torch.cat([parts[p.name] for p in observed_parts(sensitivity is not None, gravity)], dim=-1)
 
 
 def critic_observation(

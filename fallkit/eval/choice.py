@@ -36,7 +36,7 @@ from fallkit.eval.metrics import TrialMetrics
 from fallkit.eval.rollout import Trials
 from fallkit.pose_choice import PIVOT_HEIGHT, choose_by_heading, ground_sides, side_counts, side_rows
 from fallkit.poses.end_pose_set import EndPoseSet
-from fallkit.rotations import quat_rotate_inverse, tilt_quat
+from fallkit.rotations import gravity_in_frame, quat_rotate_inverse, tilt_quat
 
 # Observations per critic call: [rows, Dc] float32 is ~100 MB for biped20 (Dc = 404), so 256 falls ×
 # 2000 candidates take 8 calls; one call for all would need 0.8 GB.
@@ -138,6 +138,8 @@ def critic_values(
         obs = critic_obs[i : i + per].unsqueeze(1).repeat(1, p, 1)  # [b, P, Dc]
         obs[..., columns["goal_root_quat"]] = goal_root_quat
         obs[..., columns["goal_joint_pos"]] = goal_joint_pos
+        if "goal_gravity" in columns:  # a policy trained with env.observe_gravity
+            obs[..., columns["goal_gravity"]] = gravity_in_frame(goal_root_quat)
         out[i : i + per] = critic(obs).squeeze(-1)
     return out
 
@@ -152,7 +154,7 @@ def candidate_values(env: FallEnv, critic: nn.Module, starts: StartStates) -> to
     poses = env.end_poses
     goal_tilt = tilt_quat(poses.root_quat.to(torch.float32))  # FallEnv._goal_tilt
     critic.to(env.device)
-    return critic_values(critic, starts.critic, goal_tilt, poses.joint_pos.to(torch.float32), actor_slices(env.spec))
+    return critic_values(critic, starts.critic, goal_tilt, poses.joint_pos.to(torch.float32), actor_slices(env.spec, env.observes_sensitivity, env.observes_gravity))
 
 
 def choose_end_poses(env: FallEnv, trials: Trials, choice: PoseChoice) -> Trials:

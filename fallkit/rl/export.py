@@ -65,7 +65,10 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         "joint_limits": dict(zip(spec.joint_names, spec.joint_limits.tolist())),
         "pd_gains": {j.name: {"kp": j.kp, "kd": j.kd, "torque_limit": j.torque_limit} for j in spec.joints},
         "observation_size": obs_dim,
-        "observation_layout": describe_actor_observation(spec, tcfg.env.sensitivity_inputs.enabled),
+        "observation_layout": describe_actor_observation(
+            spec, tcfg.env.sensitivity_inputs.enabled, tcfg.env.observe_gravity
+        ),
+        "observe_gravity": tcfg.env.observe_gravity,  # 'gravity', 'goal_gravity' in the layout (env.observe_gravity)
         "fall_detector": exported_detector(spec, config.detector),  # fallkit.deploy.FallDetector.load reads it
         "tracking_blend": {
             "observed": tcfg.env.observe_blend,
