@@ -14,6 +14,7 @@ max force falls by >= 25 % at 4x (`head_p95_reduction`); the battery's median an
         [--weighted RUN]        # e.g. experiments/battery/<time>/0_biped20_battery: the battery-5.0 policy
         [--poses FILE]          # pin the end-pose dataset (evaluations read the checkpoint's env.poses)
         [--minutes M]           # a wall-clock budget instead of 450 iterations
+        [-- OVERRIDES…]         # training overrides, e.g. -- train.ppo.normalize_value=true
 
 Prints one JSON object on its last line.
 """
@@ -56,13 +57,16 @@ def main() -> None:
     ap.add_argument("--weighted", help="run dir of a policy trained with the battery at 5.0 (robot=biped20_battery)")
     ap.add_argument("--poses", help="end-pose dataset to train and evaluate on (env.poses; default: the robot's)")
     ap.add_argument("--minutes", type=float, help="a wall-clock budget instead of the 450 iterations (train.max_minutes)")
+    ap.add_argument("overrides", nargs=argparse.REMAINDER,
+                    help="-- then training overrides (e.g. train.ppo.normalize_value=true)")
     args = ap.parse_args()
+    extra = [o for o in args.overrides if o != "--"]
     out = Path(args.out) / time.strftime("%Y-%m-%d_%H-%M-%S")
     start = time.perf_counter()
     run = Path(args.checkpoint) if args.checkpoint else out / "train"
     if not args.checkpoint:
         budget = ["train.iterations=100000", f"train.max_minutes={args.minutes}"] if args.minutes else []
-        fallkit(*TRAIN, *budget, *([f"env.poses={args.poses}"] if args.poses else []), f"hydra.run.dir={run}")
+        fallkit(*TRAIN, *budget, *([f"env.poses={args.poses}"] if args.poses else []), *extra, f"hydra.run.dir={run}")
     train_s = time.perf_counter() - start
     results = {}
     for name, overrides in SETTINGS.items():
@@ -72,6 +76,7 @@ def main() -> None:
     d, head, bat = results["default"], results["head_4x"], results["battery_5"]
     report = {
         "checkpoint": str(run),
+        "overrides": extra,
         "train_seconds": round(train_s, 1),
         "seconds": round(time.perf_counter() - start, 1),
         "head_p95_reduction": round(1.0 - head["head_p95"] / d["head_p95"], 3),  # target >= 0.25
