@@ -36,8 +36,11 @@ def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def quat_rotate_inverse(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Rotate vectors v by q⁻¹ (parent frame -> frame of q)."""
-    return quat_rotate(quat_conj(q), v)
+    """Rotate vectors v by q⁻¹ (parent frame -> frame of q): quat_rotate with the vector part negated, written
+    out so that no constant tensor is made per call (on a GPU: a host-to-device copy every env step)."""
+    w, xyz = q[..., :1], -q[..., 1:]
+    t = 2.0 * torch.cross(xyz, v, dim=-1)
+    return v + w * t + torch.cross(xyz, t, dim=-1)
 
 
 def quat_from_euler(roll: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:

@@ -150,3 +150,30 @@ def test_export_onnx_reproduces_the_policy(tmp_path):
     want = policy.module.module(obs).detach().numpy()
     got = onnxruntime.InferenceSession(str(onnx_path)).run(["action"], {"observation": obs.numpy()})[0]
     np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_policy(tmp_path, monkeypatch):
+    """The KL that adapts the learning rate is the exact KL between the collecting policy and the policy
+    about to step: 0 before the first step, and after one step the KL of the stepped policy."""
+    import copy
+
+    from fallkit.rl import ppo as ppo_module
+    from fallkit.rl.models import policy_net
+    from fallkit.rl.trainer import Trainer
+
+    cfg = tiny_config("train.ppo.num_minibatches=1", "train.ppo.epochs=2")
+    trainer = Trainer(cfg, tmp_path / "run")
+    trainer.td = trainer.env.reset()
+    batch = trainer.collect()
+    seen: list[float] = []
+    real = ppo_module.adapt_learning_rate
+    monkeypatch.setattr(ppo_module, "adapt_learning_rate", lambda lr, kl, c: seen.append(kl) or real(lr, kl, c))
+    actor, critic = copy.deepcopy(trainer.actor), copy.deepcopy(trainer.critic)
+    trainer.ppo.update(batch.clone(), generator=torch.Generator().manual_seed(0))
+    assert seen[0] == 0.0 and seen[1] > 0.0
+    one_step = ppo_module.PPO(actor, critic, cfg.train.ppo.model_copy(update={"epochs": 1}))
+    one_step.update(batch.clone(), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        loc, scale = policy_net(actor)(batch["policy"].reshape(-1, batch["policy"].shape[-1]))
+        kl = ppo_module.gaussian_kl(batch["loc"].reshape(loc.shape), batch["scale"].reshape(loc.shape), loc, scale)
+    assert seen[1] == pytest.approx(kl.item(), rel=1e-4)

@@ -103,7 +103,7 @@ class FallEnv(EnvBase):
 
     def setpoint(self, action: torch.Tensor) -> torch.Tensor:
         """Joint setpoints [N, J] of an action: nominal + action_scale · a, clipped to the limits."""
-        q = torch.addcmul(self.nominal, action, torch.tensor(self.action_scale, device=self.device))
+        q = torch.add(self.nominal, action, alpha=self.action_scale)  # no per-step constant tensor (a copy to a GPU)
         if self.env_cfg.clip_setpoints:
             q = torch.minimum(torch.maximum(q, self._q_lo), self._q_hi)
         return q

@@ -1,0 +1,86 @@
+"""Tensor operations and host reads per env step of training's collection (issue 15, the CPU proxy).
+
+On a GPU every tensor operation is (at least) one kernel launch and every host read of a device
+value (`.item()`, `bool(tensor)`, `nonzero`, `.cpu()`) is a sync that stalls the launch queue;
+both are what a CUDA graph removes and what "no host syncs inside the rollout" forbids. On the
+CPU, torch's profiler counts them on the same code: this runs training's own collection loop
+(`fallkit.rl.trainer.collect`: the actor, then TorchRL's step_and_maybe_reset of FallEnv) for a
+few iterations and reports, per env step (one policy step of the whole batch):
+
+  ops_per_step        aten operations called from Python (top-level: what launches kernels)
+  host_reads_per_step aten::_local_scalar_dense and aten::nonzero / aten::item calls (device -> host)
+  ms_per_step         wall time of a profiled step, and of an unprofiled one
+  top                 the operations called most often, per step
+
+The simulator's own work (MuJoCo C on the CPU, one CUDA graph with mujoco_warp) is not a torch
+operation and is not counted.
+
+    .venv/bin/python benchmarks/step_ops.py [--envs 256] [--steps 24] [-- overrides]
+
+Prints one JSON object on its last line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import time
+
+import torch
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+from torch.profiler import ProfilerActivity, profile
+
+from fallkit.app import register_configs
+from fallkit.config import validate
+from fallkit.rl.trainer import Trainer, collect
+
+HOST_READS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::item", "aten::is_nonzero")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--envs", type=int, default=256)
+    ap.add_argument("--steps", type=int, default=24, help="policy steps per profiled collection")
+    ap.add_argument("--out", default="/tmp/fallkit_step_ops")
+    ap.add_argument("overrides", nargs=argparse.REMAINDER, help="-- then config overrides")
+    args = ap.parse_args()
+    extra = [o for o in args.overrides if o != "--"]
+    register_configs()
+    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["train=quick", f"sim.num_envs={args.envs}", *extra])
+    raw = OmegaConf.to_container(cfg, resolve=False)
+    raw.pop("hydra", None)
+    torch.set_num_threads(1)  # as the trainer collects
+    trainer = Trainer(validate(raw), args.out)
+    n = args.steps
+    _, td = collect(trainer.env, trainer.actor, trainer.env.reset(), n)  # warm: first resets, allocations
+    t0 = time.perf_counter()
+    _, td = collect(trainer.env, trainer.actor, td, n)
+    plain_ms = (time.perf_counter() - t0) * 1e3 / n
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        t0 = time.perf_counter()
+        collect(trainer.env, trainer.actor, td, n)
+        profiled_ms = (time.perf_counter() - t0) * 1e3 / n
+    counts: collections.Counter[str] = collections.Counter()
+    for event in prof.events():
+        # top-level aten calls only: an op's own sub-ops run inside its kernel on a GPU
+        if event.name.startswith("aten::") and (event.cpu_parent is None or not event.cpu_parent.name.startswith("aten::")):
+            counts[event.name] += 1
+    host = sum(counts[name] for name in HOST_READS)
+    report = {
+        "envs": args.envs,
+        "steps": n,
+        "ops_per_step": round(sum(counts.values()) / n, 1),
+        "host_reads_per_step": round(host / n, 2),
+        "ms_per_step": round(plain_ms, 2),
+        "ms_per_step_profiled": round(profiled_ms, 2),
+        "top": {name: round(c / n, 1) for name, c in counts.most_common(15)},
+        "overrides": extra,
+    }
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
