@@ -69,6 +69,16 @@ def test_episodes_draw_weights_log_uniformly_and_actor_and_critic_observe_them(b
     assert (env.sensitivity[3:] == before[3:]).all() and (env.sensitivity[:3] != before[:3]).all()
 
 
+def test_draw_one_changes_one_component_per_episode_and_keeps_the_others(biped, poses):
+    env = make_env(biped, poses, inputs(low=0.5, high=4.0, draw="one"), n=256)
+    env.reset()
+    factor = env.sensitivity / torch.as_tensor(biped.sensitivity, dtype=torch.float32)
+    changed = factor != 1.0
+    assert (changed.sum(dim=1) == 1).all()  # exactly one component per world (a draw of exactly 1.0 is measure zero)
+    assert (changed.sum(dim=0) > 256 / len(biped.components) / 2).all()  # every component is chosen, about evenly
+    assert factor.min() >= 0.5 and factor.max() <= 4.0
+
+
 def test_the_impact_reward_weighs_each_world_by_its_own_weights(biped, poses):
     """Every weight doubled (low = high = 2) quadruples the impact term on the same falls."""
     impact = []

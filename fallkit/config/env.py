@@ -5,6 +5,8 @@ Kept apart from `fallkit.env` so that validating a config does not import TorchR
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, field_validator, model_validator
 
 from fallkit import registry
@@ -124,6 +126,11 @@ class SensitivityInputs(Section):
     )
     high: float = Field(
         5.0, gt=0, description="per component, independently; low = high = 1: the robot's own weights, nothing drawn"
+    )
+    draw: Literal["each", "one"] = Field(
+        "each",
+        description="each: every component's factor is drawn; one: one component, chosen uniformly per episode, "
+        "is drawn and the others keep the robot's weights (each episode then says what one weight changes)",
     )
 
     @model_validator(mode="after")

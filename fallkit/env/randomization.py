@@ -113,10 +113,15 @@ def draw_sensitivity(
     config: SensitivityInputs, weights: torch.Tensor, k: int, generator: torch.Generator
 ) -> torch.Tensor | None:
     """Sensitivity weights [k, C] of k new episodes: the robot's weights [C] × factors log-uniform in
-    [low, high], per component (env.sensitivity_inputs); None where nothing is drawn (low = high = 1 in
-    evaluation, or the inputs off), so the worlds keep the weights they have."""
+    [low, high], per component (draw="one": for one component per episode; env.sensitivity_inputs); None where
+    nothing is drawn (low = high = 1 in evaluation, or the inputs off), so the worlds keep the weights they have."""
     if not config.enabled or config.low == config.high == 1.0:
         return None
     lo, hi = math.log(config.low), math.log(config.high)
     u = torch.rand(k, weights.shape[0], generator=generator, device=weights.device)
-    return weights * torch.exp(lo + (hi - lo) * u)
+    log_factor = lo + (hi - lo) * u
+    if config.draw == "one":  # one component per episode, the others at the robot's weights
+        pick = torch.randint(weights.shape[0], (k, 1), generator=generator, device=weights.device)
+        drawn = torch.zeros_like(log_factor, dtype=torch.bool).scatter_(1, pick, True)
+        log_factor = torch.where(drawn, log_factor, 0.0)
+    return weights * torch.exp(log_factor)

@@ -94,6 +94,8 @@ def _sensitivity_inputs(spec, config: FallkitConfig) -> dict:
         "components": spec.component_names,
         "defaults": dict(zip(spec.component_names, spec.sensitivity.tolist())),
         "trained_range": {c: [w * r.low, w * r.high] for c, w in zip(spec.component_names, spec.sensitivity.tolist())},
+        "trained_draw": "every component per episode" if r.draw == "each" else "one component per episode, "
+        "the others at their defaults",
         "formula": f"observation 'sensitivity' = ln(max(w_c, {MIN_SENSITIVITY:g})) per component, in this order",
     }
 
