@@ -299,7 +299,7 @@ class FallEnv(EnvBase):
         self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
         std = noise_std(spec, self.env_cfg.noise, self.observes_sensitivity, self.observes_gravity)
         noisy = std.nonzero()
-        # noise is drawn for the measured columns only (a prefix of the layout)
+        # noise is drawn up to the last measured column (std 0 on exact parts before it, e.g. the goal)
         self._noise_cols = int(noisy.max()) + 1 if len(noisy) else 0
         self._noise_std = std[: self._noise_cols].to(self.device)
 
