@@ -135,12 +135,7 @@ class PPO:
                 if self.mirror is not None:
                     data = self._with_mirror_image(data)
                 out = self.loss(data)
-                loss_critic = out["loss_critic"]
-                if critic_net.target is not None:  # in units of the target statistics
-                    loss_critic = loss_critic / critic_net.target_std().square()
-                loss = out["loss_objective"] + loss_critic
-                if "loss_entropy" in out.keys():
-                    loss = loss + out["loss_entropy"]
+                loss, loss_critic = _total_loss(out, critic_net)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 _average_gradients(self.params)
@@ -156,13 +151,16 @@ class PPO:
                 count += 1
         stats = {k: v / count for k, v in sums.items()}
         stats["actor_grad_norm"], stats["critic_grad_norm"] = (grad_norms / count).tolist()
+        return stats | self._state_stats(net, critic_net)
+
+    def _state_stats(self, net: GaussianPolicyNet, critic_net) -> dict[str, float]:
+        """What the update leaves: learning rate, the policy's std and entropy, the value targets' statistics."""
+        stats = {"learning_rate": self.learning_rate, "action_std": net.log_std.exp().mean().item()}
+        # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
+        stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
         if critic_net.target is not None:
             stats["value_target_mean"] = critic_net.target.mean.item()
             stats["value_target_std"] = critic_net.target_std().item()
-        stats["learning_rate"] = self.learning_rate
-        stats["action_std"] = net.log_std.exp().mean().item()
-        # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
-        stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
         return stats
 
     def _group_grad_norms(self) -> torch.Tensor:
@@ -197,6 +195,18 @@ class PPO:
     def load_state_dict(self, state: dict) -> None:
         self.optimizer.load_state_dict(state["optimizer"])
         self.learning_rate = state["learning_rate"]
+
+
+def _total_loss(out: TensorDict, critic_net) -> tuple[torch.Tensor, torch.Tensor]:
+    """(surrogate + value loss + entropy term, the value loss): the value loss in units of the value
+    targets' statistics where the critic normalises them (train.ppo.normalize_value)."""
+    loss_critic = out["loss_critic"]
+    if critic_net.target is not None:
+        loss_critic = loss_critic / critic_net.target_std().square()
+    loss = out["loss_objective"] + loss_critic
+    if "loss_entropy" in out.keys():
+        loss = loss + out["loss_entropy"]
+    return loss, loss_critic
 
 
 def distributed() -> bool:
