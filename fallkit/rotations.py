@@ -30,7 +30,11 @@ def quat_conj(q: torch.Tensor) -> torch.Tensor:
 
 def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotate vectors v by unit quaternions q (frame of q -> parent frame)."""
-    w, xyz = q[..., :1], q[..., 1:]
+    return _rotate(q[..., :1], q[..., 1:], v)
+
+
+def _rotate(w: torch.Tensor, xyz: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """v rotated by the unit quaternion (w, xyz): v + 2w(xyz × v) + xyz × (2 xyz × v)."""
     t = 2.0 * torch.cross(xyz, v, dim=-1)
     return v + w * t + torch.cross(xyz, t, dim=-1)
 
@@ -38,9 +42,7 @@ def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 def quat_rotate_inverse(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotate vectors v by q⁻¹ (parent frame -> frame of q): quat_rotate with the vector part negated, written
     out so that no constant tensor is made per call (on a GPU: a host-to-device copy every env step)."""
-    w, xyz = q[..., :1], -q[..., 1:]
-    t = 2.0 * torch.cross(xyz, v, dim=-1)
-    return v + w * t + torch.cross(xyz, t, dim=-1)
+    return _rotate(q[..., :1], -q[..., 1:], v)
 
 
 def quat_from_euler(roll: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:

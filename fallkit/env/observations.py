@@ -21,6 +21,7 @@ invariant under rotations of the world about z and horizontal translations.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -74,6 +75,7 @@ ACTOR_OBSERVATION: tuple[ObservationPart, ...] = (
 )  # fmt: skip
 
 
+@functools.cache  # called every env step: the layout is fixed per option pair
 def observed_parts(sensitivity: bool = False, gravity: bool = False) -> tuple[ObservationPart, ...]:
     """The parts of the actor observation, with or without the sensitivity inputs (env.sensitivity_inputs)
     and the up axes (env.observe_gravity)."""

@@ -134,12 +134,13 @@ def critic_values(
         )
     per = max(1, rows // p)
     out = torch.empty(n, p, device=critic_obs.device)
+    goal_gravity = gravity_in_frame(goal_root_quat) if "goal_gravity" in columns else None  # env.observe_gravity
     for i in range(0, n, per):
         obs = critic_obs[i : i + per].unsqueeze(1).repeat(1, p, 1)  # [b, P, Dc]
         obs[..., columns["goal_root_quat"]] = goal_root_quat
         obs[..., columns["goal_joint_pos"]] = goal_joint_pos
-        if "goal_gravity" in columns:  # a policy trained with env.observe_gravity
-            obs[..., columns["goal_gravity"]] = gravity_in_frame(goal_root_quat)
+        if goal_gravity is not None:
+            obs[..., columns["goal_gravity"]] = goal_gravity
         out[i : i + per] = critic(obs).squeeze(-1)
     return out
 

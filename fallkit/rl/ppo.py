@@ -168,7 +168,7 @@ class PPO:
         gradients dwarf the actor's shrinks the actor's step too — these say when it does."""
         return torch.stack(
             [
-                torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in group["params"] if p.grad is not None]))
+                torch.nn.utils.get_total_norm([p.grad for p in group["params"] if p.grad is not None])
                 for group in self.optimizer.param_groups
             ]
         )
