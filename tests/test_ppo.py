@@ -138,6 +138,22 @@ def test_prior_power_keeps_the_hold_and_the_residual_longer_and_still_ends_at_th
     torch.testing.assert_close(prior.residual_weight(obs)[1], torch.tensor([0.0]))
 
 
+def test_faded_noise_follows_the_residual_down_to_its_floor(biped):
+    """train.fade_noise: full std where the MLP has its say, std × floor where the mean is the prior's."""
+    from fallkit.config import validate
+    from fallkit.rl.models import GaussianPolicyNet, JointPrior
+
+    obs, _, _ = _prior_observation(biped, [0.0, 0.5, 1.0])
+    j = len(biped.joints)
+    prior = JointPrior(biped, 0.5, seek=True, fade=True, power=2.0)
+    _, scale = GaussianPolicyNet(obs.shape[-1], j, [8], 0.3, prior, noise_floor=0.1)(obs)
+    torch.testing.assert_close(scale[:, 0], torch.tensor([0.3, 0.3 * (0.1 + 0.9 * 0.75), 0.03]))
+    _, plain = GaussianPolicyNet(obs.shape[-1], j, [8], 0.3, prior)(obs)
+    torch.testing.assert_close(plain, torch.full_like(plain, 0.3))  # off: one std throughout
+    with pytest.raises(ValueError, match="train.fade_noise .* needs train.fade_residual=true"):
+        validate({"robot": {"name": "biped20"}, "train": {"fade_residual": False, "fade_noise": 0.1}})
+
+
 def test_checkpoints_get_the_users_normal_file_mode(tmp_path):
     import os
 

@@ -70,6 +70,11 @@ class FallkitConfig(Section):
                 "train.fade_residual fades the MLP into a prior by u(t): it needs train.prior=hold|seek and "
                 "env.observe_blend=true"
             )
+        if self.train.fade_noise is not None and not self.train.fade_residual:
+            raise ValueError(
+                "train.fade_noise fades the exploration noise with the learned deviation: it needs "
+                "train.fade_residual=true (or train.fade_noise=null)"
+            )
         return self
 
     @model_validator(mode="after")

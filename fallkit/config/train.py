@@ -43,6 +43,13 @@ class PPOConfig(Section):
         description="the critic predicts values in units of the running mean and std of the value targets (the "
         "loss too), its last layer rescaled as they move (PopArt's preserving step; fallkit.rl.models.ValueNet)",
     )
+    orientation_potential: float = Field(
+        0.0,
+        ge=0,
+        description="c of a potential-based shaping of the orientation term for PPO's advantages, F = γΦ(s') − "
+        "Φ(s) with Φ = −c‖R(θ)ᵀe_z − R(θ̂)ᵀe_z‖²: credit for the tilt gained or lost toward the end pose when it "
+        "happens, the task's optimal policies unchanged (fallkit.rl.shaping); 0 = off",
+    )
     mirror: bool = Field(
         False,
         description="left-right symmetry augmentation: every minibatch also trains on its mirror image (mirrored "
@@ -76,6 +83,14 @@ class TrainConfig(Section):
         description="the prior seeks and fades by u(t)^power instead of u(t): above 1 the hold and the learned "
         "deviation keep more of the fall, and the prior takes the joints to the end pose later (8: measured "
         "on two seeds against 1, docs/training.md)",
+    )
+    fade_noise: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="the exploration noise fades with the learned deviation, std·(f + (1 − f)·(1 − u(t)^power)) for "
+        "this floor f: where the mean is the prior's alone the noise teaches nothing and only shakes the landing the "
+        "orientation and joint terms judge (null: the same std throughout; needs train.fade_residual)",
     )
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")

@@ -118,13 +118,30 @@ def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
 
 
 class GaussianPolicyNet(nn.Module):
-    """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state."""
+    """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state.
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], init_std: float, prior: JointPrior | None = None):
+    With `noise_floor` f (train.fade_noise, needs a fading prior) the scale fades with the learned
+    deviation, exp(log_std)·(f + (1 − f)·residual_weight): where the mean is the prior's alone, full
+    noise explores nothing the policy can change and only shakes the landing that the orientation
+    and joint terms judge (a deterministic evaluation never sees it).
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        hidden: list[int],
+        init_std: float,
+        prior: JointPrior | None = None,
+        noise_floor: float | None = None,
+    ):
         super().__init__()
+        if noise_floor is not None and (prior is None or not prior.fade):
+            raise ValueError("GaussianPolicyNet: noise_floor fades the noise with the residual: it needs a fading prior")
         self.norm = RunningNorm(obs_dim)
         self.mean = mlp(obs_dim, hidden, act_dim)
         self.prior = prior
+        self.noise_floor = noise_floor
         self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
         # Small last layer: the first actions are the prior's (or the nominal pose without one).
         nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
@@ -132,9 +149,13 @@ class GaussianPolicyNet(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mean(self.norm(obs))
+        scale = self.log_std.exp().expand_as(loc)
         if self.prior is not None:
-            loc = torch.addcmul(self.prior(obs), loc, self.prior.residual_weight(obs))
-        return loc, self.log_std.exp().expand_as(loc)
+            weight = self.prior.residual_weight(obs)
+            loc = torch.addcmul(self.prior(obs), loc, weight)
+            if self.noise_floor is not None:
+                scale = scale * (self.noise_floor + (1.0 - self.noise_floor) * weight)
+        return loc, scale
 
 
 class ValueNet(nn.Module):
@@ -174,11 +195,19 @@ class ValueNet(nn.Module):
 
 
 def make_actor(
-    obs_dim: int, act_dim: int, hidden: list[int], init_std: float, prior: JointPrior | None = None, action_spec=None
+    obs_dim: int,
+    act_dim: int,
+    hidden: list[int],
+    init_std: float,
+    prior: JointPrior | None = None,
+    action_spec=None,
+    noise_floor: float | None = None,
 ) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
     net = TensorDictModule(
-        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior), in_keys=["policy"], out_keys=["loc", "scale"]
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor),
+        in_keys=["policy"],
+        out_keys=["loc", "scale"],
     )
     return ProbabilisticActor(
         net,
