@@ -14,7 +14,9 @@ One call of `PPO.update(batch)` is one iteration's learning:
   4. With `normalize_value`, the value targets join the critic's running target statistics
      first (its outputs preserved, `ValueNet.update_target_statistics`) and the value loss is
      taken in those units, so its gradients are O(1) whatever the scale of the returns.
-  5. With `mirror` (symmetric robots, fallkit.env.mirror), each minibatch is extended by its
+  5. With `potential` (train.ppo.orientation_potential), GAE reads the reward shaped by
+     γΦ(s') − Φ(s) (fallkit.rl.shaping); the batch's own reward stays the task's.
+  6. With `mirror` (symmetric robots, fallkit.env.mirror), each minibatch is extended by its
      mirror image before the loss: mirrored policy and critic observations and actions with
      the original advantage, value target, old value and old log-probability (rsl_rl's
      symmetry augmentation), so every sample also teaches the mirrored fall. The KL above
@@ -39,6 +41,7 @@ from torchrl.objectives.value import GAE
 from fallkit.config import PPOConfig
 from fallkit.env.mirror import ObservationMirror
 from fallkit.rl.models import GaussianPolicyNet, RunningNorm, policy_net, value_net
+from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 
 
 def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:
@@ -69,11 +72,19 @@ def mirror_error(net: GaussianPolicyNet, mirror: ObservationMirror, obs: torch.T
 
 
 class PPO:
-    def __init__(self, actor, critic, cfg: PPOConfig, mirror: ObservationMirror | None = None):
+    def __init__(
+        self,
+        actor,
+        critic,
+        cfg: PPOConfig,
+        mirror: ObservationMirror | None = None,
+        potential: OrientationPotential | None = None,
+    ):
         if cfg.mirror and mirror is None:
             raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
         self.cfg = cfg
         self.mirror = mirror if cfg.mirror else None
+        self.potential = potential
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
@@ -87,6 +98,8 @@ class PPO:
             clip_value=cfg.value_clip if cfg.value_clip is not None else False,
         )
         self.gae = GAE(gamma=cfg.gamma, lmbda=cfg.lam, value_network=critic, average_gae=False)
+        if potential is not None:
+            self.gae.set_keys(reward=SHAPED_REWARD)
         self.params = [p for p in self.loss.parameters() if p.requires_grad]
         # Two groups: the actor's rate follows the KL rule; the critic's follows it too unless it has its
         # own (critic_learning_rate): a KL-bound step is about the policy, and ties the critic to it.
@@ -102,6 +115,8 @@ class PPO:
         """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures."""
         cfg = self.cfg
         with torch.no_grad():
+            if self.potential is not None:
+                self.potential.shape(batch, cfg.gamma)
             self.gae(batch)
         critic_net = value_net(self.critic)
         if critic_net.target is not None:

@@ -38,6 +38,7 @@ from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_chec
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, distributed, merge_over_ranks
+from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
 log = logging.getLogger(__name__)
@@ -65,12 +66,17 @@ class Trainer:
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
         prior = joint_prior(config, self.spec)
-        self.actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior).to(self.env.device)
+        self.actor = make_actor(
+            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise
+        ).to(self.env.device)
         self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(self.env.device)
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
-        self.ppo = PPO(self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None)
+        potential = OrientationPotential(
+            self.spec, tc.ppo.orientation_potential, config.env.sensitivity_inputs.enabled, config.env.observe_gravity
+        ) if tc.ppo.orientation_potential > 0 else None
+        self.ppo = PPO(self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None, potential)
         self.shuffle = torch.Generator().manual_seed(seed)
         self.iteration, self.start = 0, 0
         self.td: TensorDict | None = None  # the next collection's input
