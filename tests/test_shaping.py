@@ -54,7 +54,7 @@ def test_gae_reads_the_shaped_reward_and_the_task_reward_stays(biped):
     assert not torch.allclose(batch["critic"][:, 20], batch["next", "critic"][:, 19])  # reset: a new fall
 
 
-def test_training_with_shaping_runs_and_logs_the_task_reward(tmp_path):
+def test_training_with_shaping_gives_gae_the_shaped_reward(tmp_path):
     from helpers import TINY, composed_config
 
     from fallkit.rl.trainer import Trainer

@@ -7,7 +7,8 @@ docs/training.md). Shaping the reward with F = γΦ(s') − Φ(s), Φ(s) = −c�
 pays each step for the tilt it gained or lost toward the end pose, and leaves the optimal
 policies of the task unchanged (Ng, Harada & Russell 1999: a potential-based term shifts
 every value by −Φ and no action's advantage in the limit). It is a learning aid of PPO's: the
-env's reward, the logged reward terms and the evaluation stay the task's.
+env's reward, the logged reward terms and the evaluation stay the task's. Measured with c = 20
+(train=quick, 15 min): the orientation term learned no faster than without it, so it is off.
 """
 
 from __future__ import annotations
