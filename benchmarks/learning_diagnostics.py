@@ -1,0 +1,123 @@
+"""Where a trained policy loses the end pose, and whether the task's reward agrees (issue 13).
+
+Reads a finished training run (its checkpoint and the per-fall results `eval_trials.npz` of its
+evaluation) and answers three questions on the same falls its evaluation used:
+
+1. **Which falls**: seek (the open-loop blend to the target joints, no learning) lands some falls
+   within 0.5 rad of the target tilt ("easy") and ends others beyond 2 rad ("hard"). What share
+   of the easy ones does the policy keep, and what share of the hard ones does it fix?
+2. **What the reward says**: the policy and seek replayed on those falls with the training
+   reward switched on (the evaluation switches it off): undiscounted return, split into the
+   orientation term and all the rest, per group. If the policy's return is lower where it loses
+   the pose, the reward would pay to keep it — the shortfall is learning, not the reward.
+3. **Does the learned deviation read the goal**: along the policy's own falls, the change of the
+   learned deviation (the MLP's share of the action) when each fall's end pose is replaced by
+   another fall's, relative to its size, by time.
+
+    python benchmarks/learning_diagnostics.py RUN_DIR   # e.g. runs/learning_power8/<time>/seed0
+
+The last line is one JSON object (`easy_kept`, `hard_fixed`, `returns`, `goal_dependence`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from fallkit.config import validate
+from fallkit.env.build import make_env
+from fallkit.env.observations import actor_slices
+from fallkit.eval.evaluate import eval_run_config, prepare
+from fallkit.eval.rollout import draw_trials
+from fallkit.robots import robot_spec
+from fallkit.rotations import gravity_in_frame
+
+EASY, HARD = 0.5, 2.0  # [rad] seek's final orientation error: lands right / ends on another side
+
+
+def fall_groups(trials: np.lib.npyio.NpzFile) -> dict[str, np.ndarray]:
+    pol, seek = trials["policy/mroe"], trials["seek/mroe"]
+    easy, hard = seek < EASY, seek > HARD
+    return {"all": np.ones_like(easy), "easy": easy, "easy_lost": easy & (pol > EASY),
+            "easy_kept": easy & (pol <= EASY), "hard": hard}  # fmt: skip
+
+
+@torch.no_grad()
+def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None]]:
+    """(total, orientation) return of policy and seek per fall, and the goal dependence by step
+    (None once the learned deviation has faded out)."""
+    k, net = len(trials), setup.policy.module.net
+    cols = actor_slices(env.spec, env.observes_sensitivity, env.observes_gravity)
+    goal = torch.cat([torch.arange(cols[n].start, cols[n].stop) for n in ("goal_root_quat", "goal_joint_pos")])
+    other = torch.roll(torch.arange(k), 1)  # each fall's end pose replaced by the previous fall's
+    td = env.reset_to(trials.qpos.repeat(2, 1), trials.qvel.repeat(2, 1), trials.pose_ids.repeat(2))
+    start_q = env.sim.state.joint_pos.clone()
+    total, orientation, dependence = torch.zeros(2 * k), torch.zeros(2 * k), []
+    weight = setup.config.reward.orientation
+    for _ in range(env.max_steps):
+        obs = td["policy"][:k]
+        swapped = obs.clone()
+        swapped[:, goal] = obs[other][:, goal]
+        deviation = [net.mean(net.norm(o)) * net.prior.residual_weight(o) for o in (obs, swapped)]
+        size = deviation[0].norm(dim=-1).mean()
+        dependence.append(((deviation[0] - deviation[1]).norm(dim=-1).mean() / size).item() if size > 0 else None)
+        action = torch.empty_like(env.last_action)
+        action[:k] = setup.policy(td[:k].select("policy"))["action"]
+        u = env.tracking_blend()[k:, None]
+        action[k:] = env.action_for_setpoint(torch.lerp(start_q[k:], env.goal_joint_pos[k:], u))
+        td = env.step(td.set("action", action))["next"]
+        total += td["reward"].view(-1)
+        tilt = gravity_in_frame(env.sim.state.root_quat) - gravity_in_frame(env.target_root_quat())
+        orientation -= weight * env.dt * env.tracking_blend() * tilt.square().sum(-1)
+    returns = {"policy": (total[:k].numpy(), orientation[:k].numpy()), "seek": (total[k:].numpy(), orientation[k:].numpy())}
+    return returns, dependence
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", type=Path, help="a training run directory with checkpoints/ and eval_trials.npz")
+    args = ap.parse_args()
+    per_fall = np.load(args.run / "eval_trials.npz")
+    if "seek/mroe" not in per_fall.files:
+        raise SystemExit(f"{args.run}/eval_trials.npz has no seek rows: evaluate with eval.seek_reference=true")
+    trained = validate(yaml.safe_load((args.run / "resolved_config.yaml").read_text()))
+    config = trained.model_copy(update={"checkpoint": str(args.run)})
+    setup = prepare(config)
+    if setup.policy.module.net.prior is None:
+        raise SystemExit(f"{args.run}: the policy has no prior, so it has no learned deviation to measure")
+    k = len(per_fall["policy/mroe"])
+    run_config = eval_run_config(setup.config, config.eval.seconds)
+    run_config = run_config.model_copy(update={"reward": setup.config.reward})  # the training reward, on
+    env = make_env(run_config, robot_spec(run_config.robot), split=setup.split, seed=config.eval.seed,
+                   num_envs=2 * k, poses=setup.poses)  # fmt: skip
+    trials = draw_trials(env, k, config.eval.seed)
+    returns, dependence = replay(setup, env, trials)
+    groups = fall_groups(per_fall)
+    pol = per_fall["policy/mroe"]
+    out = {"run": str(args.run), "falls": k, "groups": {g: int(m.sum()) for g, m in groups.items()},
+           "easy_kept": float(np.mean(pol[groups["easy"]] <= EASY)),
+           "hard_fixed": float(np.mean(pol[groups["hard"]] <= EASY)), "returns": {}}  # fmt: skip
+    print(f"{args.run}: seek lands {groups['easy'].sum()} of {k} falls within {EASY} rad; the policy keeps "
+          f"{out['easy_kept']:.0%} of them and fixes {out['hard_fixed']:.0%} of the {groups['hard'].sum()} beyond {HARD} rad")  # fmt: skip
+    print(f"{'falls':10s} {'n':>4s}  return policy / seek   orientation policy / seek   the rest policy / seek")
+    for g, m in groups.items():
+        row = {s: {"return": float(t[m].mean()), "orientation": float(o[m].mean())} for s, (t, o) in returns.items()}
+        out["returns"][g] = row
+        p, s = row["policy"], row["seek"]
+        print(f"{g:10s} {m.sum():4d}  {p['return']:7.1f} / {s['return']:7.1f}   {p['orientation']:7.1f} / "
+              f"{s['orientation']:7.1f}          {p['return'] - p['orientation']:7.1f} / {s['return'] - s['orientation']:7.1f}")  # fmt: skip
+    steps = int(round(0.2 / env.dt))
+    out["goal_dependence"] = {f"{t * env.dt:.1f}": None if dependence[t] is None else round(dependence[t], 3)
+                              for t in range(0, len(dependence), steps)}  # fmt: skip
+    print("learned deviation's change with another fall's end pose, relative to its size, by time [s]:",
+          ", ".join(f"{t}: {'faded' if v is None else f'{v:.2f}'}" for t, v in out["goal_dependence"].items()))  # fmt: skip
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
