@@ -34,8 +34,8 @@ from fallkit.env.build import make_env
 from fallkit.env.observations import actor_slices
 from fallkit.eval.evaluate import eval_run_config, prepare
 from fallkit.eval.rollout import draw_trials
+from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
-from fallkit.rotations import gravity_in_frame
 
 EASY, HARD = 0.5, 2.0  # [rad] seek's final orientation error: lands right / ends on another side
 
@@ -59,6 +59,8 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
     start_q = env.sim.state.joint_pos.clone()
     total, orientation, dependence = torch.zeros(2 * k), torch.zeros(2 * k), []
     weight = setup.config.reward.orientation
+    # −‖R(θ)ᵀe_z − R(θ̂)ᵀe_z‖², the orientation term's tilt distance, read off the critic observation
+    tilt = OrientationPotential(env.spec, 1.0, env.observes_sensitivity, env.observes_gravity)
     for _ in range(env.max_steps):
         obs = td["policy"][:k]
         swapped = obs.clone()
@@ -72,8 +74,7 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
         action[k:] = env.action_for_setpoint(torch.lerp(start_q[k:], env.goal_joint_pos[k:], u))
         td = env.step(td.set("action", action))["next"]
         total += td["reward"].view(-1)
-        tilt = gravity_in_frame(env.sim.state.root_quat) - gravity_in_frame(env.target_root_quat())
-        orientation -= weight * env.dt * env.tracking_blend() * tilt.square().sum(-1)
+        orientation += weight * env.dt * env.tracking_blend() * tilt(td["critic"]).view(-1)
     returns = {"policy": (total[:k].numpy(), orientation[:k].numpy()), "seek": (total[k:].numpy(), orientation[k:].numpy())}
     return returns, dependence
 
