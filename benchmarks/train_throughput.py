@@ -12,7 +12,7 @@ and the ratios: iteration / (simulation + update) (CPU target <= 1.3), collectio
 (`collect_over_sim`, GPU target <= 1.4) and the update's share of an iteration (`update_share`,
 GPU target <= 0.25), with env steps per second. On a GPU every phase ends on a device sync.
 
-    python benchmarks/train_throughput.py [--envs 256] [--steps 24] [--hidden 256] [--iterations 3]
+    python benchmarks/train_throughput.py [--envs 256] [--steps 24] [--hidden 256] [--iterations 3] [--precision bfloat16]
     python benchmarks/train_throughput.py --backend warp --device cuda:0 --envs 4096 16384   # issue 15
 """
 
@@ -32,7 +32,7 @@ from fallkit.app import register_configs
 from fallkit.config import validate
 from fallkit.env.build import make_env
 from fallkit.env.samplers.initial_state import InitialStateSampler
-from fallkit.rl.models import joint_prior, make_actor, make_critic
+from fallkit.rl.models import joint_prior, make_actor, make_critic, resolve_precision
 from fallkit.rl.ppo import PPO
 from fallkit.rl.trainer import collect
 from fallkit.robots import robot_spec
@@ -48,7 +48,7 @@ def config_for(args, envs: int):
         cfg = compose(
             config_name="config",
             overrides=[*preset, f"sim.num_envs={envs}", f"train.num_steps={args.steps}",
-                       f"train.actor_hidden=[{hidden}]", f"train.critic_hidden=[{hidden}]"],
+                       f"train.actor_hidden=[{hidden}]", f"train.critic_hidden=[{hidden}]", f"train.precision={args.precision}"],
         )  # fmt: skip
     raw = OmegaConf.to_container(cfg, resolve=False)
     raw.pop("hydra", None)
@@ -69,11 +69,13 @@ def measure(args, envs: int) -> dict:
     # --- a real iteration ---------------------------------------------------------------
     env = make_env(config, spec, "train", seed=0)
     device = env.device
+    precision = resolve_precision(tc.precision, device)  # as fallkit.rl.trainer resolves it
     obs_dim = env.observation_spec["policy"].shape[-1]
     critic_dim = env.observation_spec["critic"].shape[-1]
     act_dim = env.action_spec.shape[-1]
-    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, joint_prior(config, spec)).to(device)
-    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(device)
+    prior = joint_prior(config, spec)
+    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, precision=precision).to(device)
+    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision).to(device)
     ppo = PPO(actor, critic, tc.ppo)
     td = env.reset()
 
@@ -126,8 +128,9 @@ def measure(args, envs: int) -> dict:
         },
         batch_size=shape, device=device,
     )  # fmt: skip
-    actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std).to(device)
-    ppo2 = PPO(actor2, make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(device), tc.ppo)
+    actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
+    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision).to(device)
+    ppo2 = PPO(actor2, critic2, tc.ppo)
     torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())
     sync()
@@ -144,10 +147,10 @@ def measure(args, envs: int) -> dict:
         "update_in_iteration_s": round(update_s, 4), "simulation_s": round(t_sim, 4), "update_s": round(t_update, 4),
         "ratio": round(t_iter / (t_sim + t_update), 4), "collect_over_sim": round(collect_s / t_sim, 4),
         "update_share": round(update_s / t_iter, 4), "env_steps_per_s": round(steps / t_iter),
-        "sim_env_steps_per_s": round(steps / t_sim),
+        "sim_env_steps_per_s": round(steps / t_sim), "precision": precision,
     }  # fmt: skip
     print(f"{envs} envs x {tc.num_steps} steps on {config.sim.backend} ({device}), actor/critic 3x{args.hidden}, "
-          f"{tc.ppo.epochs} epochs x {tc.ppo.num_minibatches} minibatches")  # fmt: skip
+          f"{tc.ppo.epochs} epochs x {tc.ppo.num_minibatches} minibatches, {precision}")  # fmt: skip
     print(f"  training iteration      {t_iter:7.3f} s  (collection {collect_s:.3f} s + update {update_s:.3f} s)")
     print(f"  pure simulation         {t_sim:7.3f} s")
     print(f"  PPO update, random data {t_update:7.3f} s")
@@ -165,6 +168,7 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=24)
     p.add_argument("--hidden", type=int, default=None, help="width of the 3 layers (default: 256; warp 512)")
     p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
+    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto", help="train.precision")
     args = p.parse_args()
     warp = args.backend == "warp"
     args.envs = args.envs or ([4096, 16384] if warp else [256])
@@ -172,7 +176,7 @@ def main() -> None:
     runs = [measure(args, n) for n in args.envs]
     summary = {
         "backend": args.backend, "device": args.device if warp else "cpu", "steps": args.steps,
-        "hidden": args.hidden, "runs": runs,
+        "hidden": args.hidden, "precision": args.precision, "runs": runs,
         **{k: {str(r["envs"]): r[k] for r in runs} for k in ("collect_over_sim", "update_share", "env_steps_per_s")},
     }  # fmt: skip
     if len(runs) == 1:  # the single-count form of issue 6 keeps its flat keys

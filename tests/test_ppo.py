@@ -165,13 +165,14 @@ def test_checkpoints_get_the_users_normal_file_mode(tmp_path):
     assert path.stat().st_mode & 0o777 == 0o644  # not mkstemp's 0600
 
 
-def test_a_checkpoint_saved_before_prior_power_existed_keeps_the_power_it_was_trained_with(tmp_path):
+def test_a_checkpoint_saved_before_prior_power_and_precision_existed_keeps_what_it_was_trained_with(tmp_path):
     from fallkit.config import validate
 
     config = validate({"robot": {"name": "biped20"}}).model_dump(mode="json")
-    del config["train"]["prior_power"]  # as a run of the day before wrote it
+    del config["train"]["prior_power"], config["train"]["precision"]  # as a run of an earlier day wrote it
     save_checkpoint(tmp_path / "old.pt", {"iteration": 1, "config": config})
-    assert validate(load_checkpoint(tmp_path / "old.pt")["config"]).train.prior_power == 1.0
+    old = validate(load_checkpoint(tmp_path / "old.pt")["config"]).train
+    assert old.prior_power == 1.0 and old.precision == "float32"  # as it was trained, whatever "auto" means today
     assert validate({"robot": {"name": "biped20"}}).train.prior_power == 8.0  # today's default
 
 
@@ -187,3 +188,40 @@ def test_value_target_statistics_move_without_changing_a_predicted_value():
         torch.testing.assert_close(net(obs), before, atol=1e-4, rtol=1e-5)  # PopArt's preserving step
     assert -45.0 < net.target.mean.item() < -25.0 and net.target_std().item() > 10.0
     assert ValueNet(5, [8]).target is None  # off: the network and its state_dict are the old ones
+
+
+def test_bfloat16_networks_act_alike_in_collection_and_update_and_close_to_float32():
+    """train.precision=bfloat16: the products run in bfloat16, the outputs and weights stay float32; a row
+    gives the same bits in a collection batch and in a shuffled minibatch (so PPO's ratio is exactly 1
+    before the first step), and the values stay within bfloat16's rounding of the float32 network's."""
+    from fallkit.rl.models import GaussianPolicyNet, ValueNet
+
+    torch.manual_seed(0)
+    net = GaussianPolicyNet(30, 6, [64, 64], 0.3, precision="bfloat16")
+    torch.nn.init.normal_(net.mean[-1].weight, std=0.1)  # a trained-looking last layer, not the tiny initial one
+    obs = 2.0 * torch.randn(512, 30)
+    loc, scale = net(obs[:64])
+    perm = torch.randperm(512)
+    shuffled, _ = net(obs[perm])
+    assert loc.dtype == scale.dtype == torch.float32 and net.mean[0].weight.dtype == torch.float32
+    assert torch.equal(shuffled[torch.argsort(perm)][:64], loc)
+    net.precision = "float32"
+    exact, _ = net(obs[:64])
+    assert not torch.equal(loc, exact)  # the option does change the arithmetic
+    torch.testing.assert_close(loc, exact, atol=0.02 * exact.abs().max().item(), rtol=0.02)
+    net.precision = "bfloat16"
+    loc.square().sum().backward()
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in net.mean.parameters())
+
+    value = ValueNet(30, [64, 64], precision="bfloat16")
+    v = value(obs)
+    value.precision = "float32"
+    torch.testing.assert_close(v, value(obs), atol=0.02 * value(obs).abs().max().item(), rtol=0.02)
+
+
+def test_auto_precision_is_bfloat16_only_where_it_was_measured_to_pay():
+    from fallkit.rl.models import resolve_precision
+
+    assert resolve_precision("float32", "cpu") == "float32" and resolve_precision("bfloat16", "cpu") == "bfloat16"
+    assert resolve_precision("auto", "cuda:0") == "float32"  # unmeasured on a GPU: set by hand there
+    assert resolve_precision("auto", "cpu") == ("bfloat16" if torch.cpu._is_avx512_bf16_supported() else "float32")

@@ -130,6 +130,13 @@ def test_training_on_the_warp_backend(tmp_path):
 
 
 def test_export_onnx_reproduces_the_policy(tmp_path):
+    train(tmp_path / "run", "train.iterations=1")
+    out = tmp_path / "export"
+    out.mkdir()
+    _exported_policy_matches_the_loaded_one(tmp_path / "run", out)
+
+
+def _exported_policy_matches_the_loaded_one(run: Path, out: Path) -> None:
     import json
 
     import numpy as np
@@ -138,18 +145,29 @@ def test_export_onnx_reproduces_the_policy(tmp_path):
     from fallkit.rl.export import run_export
     from fallkit.rl.policy import load_policy
 
-    train(tmp_path / "run", "train.iterations=1")
-    out = tmp_path / "export"
-    out.mkdir()
-    onnx_path = run_export(tiny_config(f"checkpoint={tmp_path / 'run'}", "mode=export"), out)
+    onnx_path = run_export(tiny_config(f"checkpoint={run}", "mode=export"), out)
     meta = json.loads((out / "policy.json").read_text())
-    policy = load_policy(tmp_path / "run")
+    policy = load_policy(run)
+    assert policy.module.module.net.precision == policy.critic.precision == "float32"
     assert meta["joint_names"] == policy.spec.joint_names and meta["policy_hz"] == 50.0
     assert sum(part["size"] for part in meta["observation_layout"]) == meta["observation_size"]
     obs = torch.randn(4, meta["observation_size"])
     want = policy.module.module(obs).detach().numpy()
     got = onnxruntime.InferenceSession(str(onnx_path)).run(["action"], {"observation": obs.numpy()})[0]
     np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_a_bfloat16_run_is_evaluated_and_exported_in_float32(tmp_path):
+    """train.precision=bfloat16 trains; the checkpoint says so; the loaded policy and critic compute in
+    float32, so evaluation and the ONNX export are the same function of the same weights."""
+    import json
+
+    run = train(tmp_path / "run", "train.iterations=2", "train.precision=bfloat16")
+    assert load_checkpoint(run)["config"]["train"]["precision"] == "bfloat16"
+    out = tmp_path / "export"
+    out.mkdir()
+    _exported_policy_matches_the_loaded_one(tmp_path / "run", out)
+    assert json.loads((out / "policy.json").read_text())["trained_precision"] == "bfloat16"
 
 
 def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_policy(tmp_path, monkeypatch):

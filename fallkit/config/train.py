@@ -92,6 +92,13 @@ class TrainConfig(Section):
         "this floor f: where the mean is the prior's alone the noise teaches nothing and only shakes the landing the "
         "orientation and joint terms judge (null: the same std throughout; needs train.fade_residual)",
     )
+    precision: Literal["auto", "float32", "bfloat16"] = Field(
+        "auto",
+        description="arithmetic of the networks' matrix products (fallkit.rl.models.run_mlp): bfloat16 runs them "
+        "under autocast with float32 weights and sums (the PPO update 1.9x as fast on a CPU with AVX512-BF16); auto "
+        "= bfloat16 on such a CPU, float32 elsewhere (resolved when training starts; the checkpoint records which). "
+        "Training only: a trained policy is evaluated and exported in float32",
+    )
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")

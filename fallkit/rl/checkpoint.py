@@ -97,6 +97,7 @@ def _defaults_of_their_time(config: dict | None) -> None:
     reproduces how it was trained, not today's default (a policy must act as it learned to)."""
     if isinstance(config, dict) and isinstance(config.get("train"), dict):
         config["train"].setdefault("prior_power", 1.0)  # the default became 8 (docs/training.md)
+        config["train"].setdefault("precision", "float32")  # train.precision came later
 
 
 def checkpoint_run_dir(path: str | Path) -> Path | None:

@@ -36,7 +36,7 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         raise ConfigError("checkpoint: mode=export needs checkpoint=<run dir or checkpoint file>")
     policy = load_policy(config.checkpoint)
     spec, tcfg = policy.spec, policy.config
-    net = policy.module.module
+    net = policy.module.module  # float32, as load_policy builds it whatever train.precision was
     obs_dim = net.net.norm.mean.shape[0]
     onnx_path = run_dir / "policy.onnx"
     example = torch.zeros(1, obs_dim)
@@ -58,6 +58,7 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
         "joint_names": spec.joint_names,
         "nominal_pose": dict(zip(spec.joint_names, spec.nominal_q().tolist())),
         "action_scale": tcfg.env.action_scale,
+        "trained_precision": tcfg.train.precision,  # the policy and this export compute in float32 (train.precision)
         "setpoint": "nominal_pose + action_scale * action"
         + (", clipped to the joint limits" if tcfg.env.clip_setpoints else ""),
         "clip_setpoints": tcfg.env.clip_setpoints,

@@ -7,6 +7,8 @@ them and an exported policy normalises its own inputs.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -54,6 +56,33 @@ class RunningNorm(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return ((x - self.mean) / torch.sqrt(self.var + self.eps)).clamp(-self.clip, self.clip)
+
+
+Precision = Literal["float32", "bfloat16"]
+
+
+def resolve_precision(precision: str, device: torch.device | str) -> Precision:
+    """train.precision on this device: "auto" is bfloat16 where it was measured to pay — a CPU with
+    AVX512-BF16 (the PPO update 1.9x as fast, docs/training.md) — and float32 elsewhere (other CPUs
+    would emulate it; on a GPU it is unmeasured: set it there by hand)."""
+    if precision != "auto":
+        return precision  # type: ignore[return-value]
+    check = getattr(torch.cpu, "_is_avx512_bf16_supported", None)  # private: absent in other torch versions
+    return "bfloat16" if torch.device(device).type == "cpu" and check is not None and check() else "float32"
+
+
+def run_mlp(layers: nn.Sequential, x: torch.Tensor, precision: Precision) -> torch.Tensor:
+    """The MLP's output in float32; with "bfloat16" its matrix products run in bfloat16 under autocast
+    (weights stay float32, products accumulate in float32), twice as fast on a CPU with AVX512-BF16
+    (train.precision, docs/training.md). The same arithmetic collects and learns, so the collecting
+    policy's log-probabilities are the update's at zero step; a trained policy is evaluated and exported
+    in float32 (fallkit.rl.policy)."""
+    if precision == "float32":
+        return layers(x)
+    if precision != "bfloat16":
+        raise ValueError(f"precision {precision!r}: float32 or bfloat16 (resolve 'auto' with resolve_precision)")
+    with torch.autocast(x.device.type, dtype=torch.bfloat16):
+        return layers(x).float()
 
 
 def mlp(in_dim: int, hidden: list[int], out_dim: int) -> nn.Sequential:
@@ -134,6 +163,7 @@ class GaussianPolicyNet(nn.Module):
         init_std: float,
         prior: JointPrior | None = None,
         noise_floor: float | None = None,
+        precision: Precision = "float32",
     ):
         super().__init__()
         if noise_floor is not None and (prior is None or not prior.fade):
@@ -142,13 +172,14 @@ class GaussianPolicyNet(nn.Module):
         self.mean = mlp(obs_dim, hidden, act_dim)
         self.prior = prior
         self.noise_floor = noise_floor
+        self.precision = precision
         self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
         # Small last layer: the first actions are the prior's (or the nominal pose without one).
         nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
         nn.init.zeros_(self.mean[-1].bias)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.mean(self.norm(obs))
+        loc = run_mlp(self.mean, self.norm(obs), self.precision)
         scale = self.log_std.exp().expand_as(loc)
         if self.prior is not None:
             weight = self.prior.residual_weight(obs)
@@ -164,14 +195,17 @@ class ValueNet(nn.Module):
     −50 with a std of about 40 (biped20, train=quick) become O(1) targets (train.ppo.normalize_value).
     """
 
-    def __init__(self, obs_dim: int, hidden: list[int], normalize_target: bool = False):
+    def __init__(
+        self, obs_dim: int, hidden: list[int], normalize_target: bool = False, precision: Precision = "float32"
+    ):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
         self.value = mlp(obs_dim, hidden, 1)
+        self.precision = precision
         self.target = RunningNorm(1) if normalize_target else None
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        v = self.value(self.norm(obs))
+        v = run_mlp(self.value, self.norm(obs), self.precision)
         if self.target is not None:
             v = torch.addcmul(self.target.mean, v, self.target_std())
         return v
@@ -202,10 +236,11 @@ def make_actor(
     prior: JointPrior | None = None,
     action_spec=None,
     noise_floor: float | None = None,
+    precision: Precision = "float32",
 ) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
     net = TensorDictModule(
-        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor),
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision),
         in_keys=["policy"],
         out_keys=["loc", "scale"],
     )
@@ -220,9 +255,12 @@ def make_actor(
     )
 
 
-def make_critic(obs_dim: int, hidden: list[int], normalize_target: bool = False) -> ValueOperator:
+def make_critic(
+    obs_dim: int, hidden: list[int], normalize_target: bool = False, precision: Precision = "float32"
+) -> ValueOperator:
     """TensorDict keys: "critic" -> "state_value"."""
-    return ValueOperator(ValueNet(obs_dim, hidden, normalize_target), in_keys=["critic"], out_keys=["state_value"])
+    net = ValueNet(obs_dim, hidden, normalize_target, precision)
+    return ValueOperator(net, in_keys=["critic"], out_keys=["state_value"])
 
 
 def policy_net(actor: ProbabilisticActor) -> GaussianPolicyNet:

@@ -3,6 +3,8 @@
 `load_policy(path).module` maps the actor observation ("policy") to the action
 ("action") with the Gaussian's mean; observation normalisation is inside it, so
 it is the whole controller: setpoint = nominal + action_scale · action.
+The networks compute in float32 whatever `train.precision` the run trained with: evaluation,
+rendering, sim2sim and the ONNX export then run the same function of the same weights.
 `load_policy(path).critic` is the trained value function V (privileged "critic"
 observation -> value, normaliser inside): `eval.poses=auto` scores end poses with it.
 """

@@ -35,7 +35,7 @@ from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
-from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, value_net
+from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, distributed, merge_over_ranks
 from fallkit.rl.shaping import OrientationPotential
@@ -63,13 +63,18 @@ class Trainer:
             self.spec, sensitivity=config.env.sensitivity_inputs.enabled, gravity=config.env.observe_gravity
         ) if tc.ppo.mirror else None
         self.env = make_env(config, self.spec, split="train", seed=seed)
+        precision = resolve_precision(tc.precision, self.env.device)
+        if precision != tc.precision:  # checkpoints record the arithmetic the policy learned with, not "auto"
+            config = config.model_copy(update={"train": tc.model_copy(update={"precision": precision})})
+            self.config, tc = config, config.train
+        log.info("networks compute in %s (train.precision)", precision)
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
         prior = joint_prior(config, self.spec)
         self.actor = make_actor(
-            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise
+            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
-        self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value).to(self.env.device)
+        self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision).to(self.env.device)
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
