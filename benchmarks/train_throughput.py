@@ -176,7 +176,7 @@ def main() -> None:
     runs = [measure(args, n) for n in args.envs]
     summary = {
         "backend": args.backend, "device": args.device if warp else "cpu", "steps": args.steps,
-        "hidden": args.hidden, "precision": args.precision, "runs": runs,
+        "hidden": args.hidden, "precision": runs[0]["precision"], "runs": runs,  # as resolved: auto says which
         **{k: {str(r["envs"]): r[k] for r in runs} for k in ("collect_over_sim", "update_share", "env_steps_per_s")},
     }  # fmt: skip
     if len(runs) == 1:  # the single-count form of issue 6 keeps its flat keys
