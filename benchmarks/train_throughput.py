@@ -75,8 +75,9 @@ def measure(args, envs: int) -> dict:
     act_dim = env.action_spec.shape[-1]
     prior = joint_prior(config, spec)
     actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, precision=precision).to(device)
-    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision).to(device)
-    ppo = PPO(actor, critic, tc.ppo)
+    heads = len(env.rewards.names) if tc.ppo.value_per_term else 1  # as the trainer builds its critic
+    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, heads).to(device)
+    ppo = PPO(actor, critic, tc.ppo, term_names=env.rewards.names)
     td = env.reset()
 
     def iteration(td):
@@ -121,7 +122,7 @@ def measure(args, envs: int) -> dict:
             "policy": r(obs_dim), "critic": r(critic_dim), "action": r(act_dim), "loc": r(act_dim),
             "scale": torch.ones(*shape, act_dim, device=device), "action_log_prob": r(),
             "next": {
-                "critic": r(critic_dim), "reward": r(1),
+                "critic": r(critic_dim), "reward": r(1), "reward_terms": r(len(env.rewards.names)),
                 "done": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
                 "terminated": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
             },
@@ -129,8 +130,8 @@ def measure(args, envs: int) -> dict:
         batch_size=shape, device=device,
     )  # fmt: skip
     actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
-    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision).to(device)
-    ppo2 = PPO(actor2, critic2, tc.ppo)
+    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, heads).to(device)
+    ppo2 = PPO(actor2, critic2, tc.ppo, term_names=env.rewards.names)
     torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())
     sync()

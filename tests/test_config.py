@@ -90,7 +90,8 @@ def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
     assert paper.train.prior == "none" and not paper.env.observe_blend and paper.train.init_noise_std == 1.0
     assert paper.sim.num_envs == 4096 and paper.train.actor_hidden == [512, 512, 512] and not paper.train.fade_residual
     assert paper.train.precision == "float32" and composed().train.precision == "auto"
-    table_iii = PPOConfig(critic_learning_rate=None, value_clip=0.2, normalize_value=False)
+    table_iii = PPOConfig(critic_learning_rate=None, value_clip=0.2, normalize_value=False, value_per_term=False)
+    assert composed().train.ppo.value_per_term and composed("train=quick").train.ppo.value_per_term
     assert not paper.env.observe_gravity and not paper.env.sensitivity_inputs.enabled
     assert paper.train.ppo == table_iii and (table_iii.num_minibatches, table_iii.epochs, table_iii.desired_kl) == (4, 5, 0.01)
     with pytest.raises(ConfigError, match="train.prior=seek blends by u"):

@@ -72,7 +72,7 @@ def test_the_critic_scorer_chooses_the_argmax_of_the_critic_over_the_candidates(
     with torch.no_grad():
         for c in range(p):  # the env encodes the goal itself: tilt of the settled quaternion, joints
             td = env.reset_to(trials.qpos, trials.qvel, torch.full((n,), c))
-            direct[:, c] = critic(td["critic"]).squeeze(-1)
+            direct[:, c] = critic(td["critic"]).sum(-1)  # V(s, g): the sum of the value heads
     assert (direct.std(dim=1) > 1e-4).all()  # the critic does depend on the goal: the choice is not a constant
     torch.testing.assert_close(batched, direct, atol=1e-5, rtol=1e-5)
     chosen = choose_end_poses(env, trials, PoseChoice("critic", critic=critic))

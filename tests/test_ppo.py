@@ -165,14 +165,15 @@ def test_checkpoints_get_the_users_normal_file_mode(tmp_path):
     assert path.stat().st_mode & 0o777 == 0o644  # not mkstemp's 0600
 
 
-def test_a_checkpoint_saved_before_prior_power_and_precision_existed_keeps_what_it_was_trained_with(tmp_path):
+def test_a_checkpoint_saved_before_prior_power_precision_and_value_heads_keeps_what_it_was_trained_with(tmp_path):
     from fallkit.config import validate
 
     config = validate({"robot": {"name": "biped20"}}).model_dump(mode="json")
-    del config["train"]["prior_power"], config["train"]["precision"]  # as a run of an earlier day wrote it
-    save_checkpoint(tmp_path / "old.pt", {"iteration": 1, "config": config})
+    del config["train"]["prior_power"], config["train"]["precision"], config["train"]["ppo"]["value_per_term"]
+    save_checkpoint(tmp_path / "old.pt", {"iteration": 1, "config": config})  # as a run of an earlier day wrote it
     old = validate(load_checkpoint(tmp_path / "old.pt")["config"]).train
     assert old.prior_power == 1.0 and old.precision == "float32"  # as it was trained, whatever "auto" means today
+    assert not old.ppo.value_per_term  # one value of the whole return: its critic has one head
     assert validate({"robot": {"name": "biped20"}}).train.prior_power == 8.0  # today's default
 
 

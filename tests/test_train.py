@@ -60,7 +60,7 @@ def test_resume_continues_exactly(tmp_path):
 def test_normalized_values_train_log_their_statistics_and_load_with_the_policy(tmp_path):
     from fallkit.rl.policy import load_policy
 
-    run = train(tmp_path / "run", "train.iterations=2", "train.ppo.normalize_value=true")
+    run = train(tmp_path / "run", "train.iterations=2", "train.ppo.normalize_value=true", "train.ppo.value_per_term=false")
     critic = load_checkpoint(run)["critic"]
     assert critic["module.target.count"] > 0 and critic["module.target.mean"] < 0  # returns are penalties
     header = (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0].split(",")

@@ -1,9 +1,9 @@
 """`train:` — PPO and the networks (paper Table III), and fallkit's measured changes to learn faster.
 
 The Table III values are the defaults; where fallkit's defaults differ from the paper
-(the joint prior, its fade, the critic's own rate without value clipping, the actor
-observing u(t)) docs/training.md gives the paired measurement, and `train=paper` sets
-the paper's setting exactly.
+(the joint prior, its fade, the critic's own rate without value clipping and with a value
+per reward term, the actor observing u(t), bfloat16 products) docs/training.md gives the
+paired measurement, and `train=paper` sets the paper's setting exactly.
 """
 
 from __future__ import annotations
@@ -55,6 +55,13 @@ class PPOConfig(Section):
         description="left-right symmetry augmentation: every minibatch also trains on its mirror image (mirrored "
         "observations and actions, same advantage; fallkit.env.mirror). Only for robots whose derived mirror map "
         "exists (RobotSpec.mirror_map); off until a paired learning run shows it pays (docs/training.md)",
+    )
+    value_per_term: bool = Field(
+        True,
+        description="a decomposed critic: one value head per reward term (impact, orientation, ...), each fitted to "
+        "its own term's returns by its own GAE; the actor's advantage is their sum, so the task is unchanged and each "
+        "head learns a simpler function than the whole return (fallkit.rl.ppo; measured on three seeds, "
+        "docs/training.md); false: one value for the whole return (the paper)",
     )
 
 

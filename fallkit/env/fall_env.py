@@ -15,6 +15,7 @@ Keys (TensorDict):
   "contact_force"  [N, C]  per component, the largest |f_c| over the physics substeps
                            of the step [N]: for metrics, not an input
   "reward"         [N, 1]  policy_dt · Σ_k weight_k · term_k (fallkit.env.rewards)
+  "reward_terms"   [N, K]  the reward's K summands (RewardSum.names order; 0 at a reset): not an input
   "done", "terminated", "truncated" [N, 1]; terminated is always False
 Per-term reward means: `env.pop_reward_terms()` / `env.reward_terms_mean`.
 
@@ -34,7 +35,8 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from fallkit import registry
-from fallkit.config import ConfigError, EnvConfig, RewardConfig
+from fallkit.config import EnvConfig, RewardConfig
+from fallkit.env.checks import check_inputs
 from fallkit.env.observations import (
     actor_layout,
     actor_observation,
@@ -71,7 +73,7 @@ class FallEnv(EnvBase):
     ):
         n = sim.num_worlds
         super().__init__(device=sim.device, batch_size=[n])
-        _check_inputs(spec, env_cfg, reward_cfg, end_poses, sim)
+        check_inputs(spec, env_cfg, reward_cfg, end_poses, sim)
         self.spec = spec
         self.env_cfg = env_cfg
         self.reward_cfg = reward_cfg
@@ -223,6 +225,7 @@ class FallEnv(EnvBase):
         self.last_action[ids] = hold
         self.last_last_action[ids] = hold
         self._motion[ids] = torch.cat((planar_motion(st.body_vel[ids, 1:]), torch.zeros_like(self._motion[ids, 2:])), 1)
+        self._reward_terms = self._reward_terms.index_fill(0, ids, 0.0)  # not in place: the last step's output holds it
         if self.disturbances is not None:
             self.disturbances.reset(mask, self._gen)
         self.randomization.reset(ids, self._gen)
@@ -261,12 +264,12 @@ class FallEnv(EnvBase):
             force_clip=self.reward_cfg.force_clip,
             dt=self.dt,
         )
-        reward = torch.where(unstable, 0.0, self.rewards(ctx))
+        self._reward_terms = self.rewards.contributions(ctx).masked_fill_(unstable.view(-1, 1), 0.0)
         self.last_last_action = self.last_action
         self.last_action = action.clone()
         truncated = ((self.step_count >= self.max_steps) | unstable).view(-1, 1)
         out = self._observation(truncated, frame, u)
-        out.set("reward", reward.view(-1, 1))
+        out.set("reward", self._reward_terms.sum(dim=1, keepdim=True))
         return out
 
     # ---- construction -------------------------------------------------------------
@@ -314,6 +317,7 @@ class FallEnv(EnvBase):
         self.last_action = torch.zeros(n, j, **f32)
         self.last_last_action = torch.zeros(n, j, **f32)
         self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
+        self._reward_terms = torch.zeros(n, len(self.rewards.names), **f32)
         # [N, C] w_c of every world: the robot's, or drawn per episode with env.sensitivity_inputs
         self.sensitivity = self.robot_sensitivity.expand(n, -1).clone()
         self._all = torch.ones(n, dtype=torch.bool, device=dev)
@@ -329,6 +333,7 @@ class FallEnv(EnvBase):
             policy=Unbounded((n, da), device=dev),
             critic=Unbounded((n, dc), device=dev),
             contact_force=Unbounded((n, len(spec.components)), device=dev),
+            reward_terms=Unbounded((n, len(self.rewards.names)), device=dev),
             shape=(n,),
             device=dev,
         )
@@ -364,6 +369,7 @@ class FallEnv(EnvBase):
                 "policy": policy,
                 "critic": critic,
                 "contact_force": st.peak_contact_force(),
+                "reward_terms": self._reward_terms,
                 "done": truncated.clone(),
                 "terminated": torch.zeros_like(truncated),
                 "truncated": truncated,
@@ -372,26 +378,3 @@ class FallEnv(EnvBase):
             device=self.device,
         )
 
-
-def _check_inputs(
-    spec: RobotSpec, env_cfg: EnvConfig, reward_cfg: RewardConfig, end_poses: EndPoseSet, sim: BatchSim
-) -> None:
-    if list(sim.spec.joint_names) != list(spec.joint_names):
-        raise ValueError(f"FallEnv: the simulator's robot '{sim.spec.name}' has other joints than '{spec.name}'")
-    if list(end_poses.joint_names) != list(spec.joint_names):
-        raise ValueError(
-            f"FallEnv: end poses are for joints {end_poses.joint_names[:3]}… of robot '{end_poses.robot}', "
-            f"not the joints of robot '{spec.name}'"
-        )
-    if len(end_poses) == 0:
-        raise ValueError("FallEnv: the end-pose set is empty")
-    if sim.state.body_vel is None:
-        raise ValueError(
-            "FallEnv: the critic observes rigid-body velocities; make the simulator with body_state=True "
-            "(fallkit.env.build.make_env does)"
-        )
-    if reward_cfg.blend_time > env_cfg.episode_length:
-        raise ConfigError(
-            f"reward.blend_time ({reward_cfg.blend_time} s) must not exceed env.episode_length "
-            f"({env_cfg.episode_length} s): u(t) would never reach 1 (paper: T_blend <= T)"
-        )

@@ -58,7 +58,7 @@ class PoseChoice:
 
     scorer: str  # "critic" | "heading"
     sides: list[str] | None = None
-    critic: nn.Module | None = None  # [..., Dc] -> [..., 1]
+    critic: nn.Module | None = None  # [..., Dc] -> [..., heads] (a value per reward term: summed)
     pivot_height: float = PIVOT_HEIGHT
 
     def describe(self) -> str:
@@ -141,7 +141,7 @@ def critic_values(
         obs[..., columns["goal_joint_pos"]] = goal_joint_pos
         if goal_gravity is not None:
             obs[..., columns["goal_gravity"]] = goal_gravity
-        out[i : i + per] = critic(obs).squeeze(-1)
+        out[i : i + per] = critic(obs).sum(-1)  # a critic with a value per reward term: V(s, g) is their sum
     return out
 
 

@@ -98,6 +98,8 @@ def _defaults_of_their_time(config: dict | None) -> None:
     if isinstance(config, dict) and isinstance(config.get("train"), dict):
         config["train"].setdefault("prior_power", 1.0)  # the default became 8 (docs/training.md)
         config["train"].setdefault("precision", "float32")  # train.precision came later
+        if isinstance(config["train"].get("ppo"), dict):
+            config["train"]["ppo"].setdefault("value_per_term", False)  # one value of the whole return before
 
 
 def checkpoint_run_dir(path: str | Path) -> Path | None:

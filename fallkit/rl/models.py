@@ -190,19 +190,25 @@ class GaussianPolicyNet(nn.Module):
 
 
 class ValueNet(nn.Module):
-    """obs -> state value. With `normalize_target` the MLP predicts the value in units of the running
-    statistics of the value targets (`target`), and the output is scaled back: value targets of about
-    −50 with a std of about 40 (biped20, train=quick) become O(1) targets (train.ppo.normalize_value).
+    """obs -> state value [..., heads]. With `normalize_target` the MLP predicts the value in units of the
+    running statistics of the value targets (`target`), and the output is scaled back: value targets of
+    about −50 with a std of about 40 (biped20, train=quick) become O(1) targets (train.ppo.normalize_value).
+    With heads > 1 (train.ppo.value_per_term) head k is the value of reward term k alone; V(s) is their sum.
     """
 
     def __init__(
-        self, obs_dim: int, hidden: list[int], normalize_target: bool = False, precision: Precision = "float32"
+        self,
+        obs_dim: int,
+        hidden: list[int],
+        normalize_target: bool = False,
+        precision: Precision = "float32",
+        heads: int = 1,
     ):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
-        self.value = mlp(obs_dim, hidden, 1)
+        self.value = mlp(obs_dim, hidden, heads)
         self.precision = precision
-        self.target = RunningNorm(1) if normalize_target else None
+        self.target = RunningNorm(heads) if normalize_target else None
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         v = run_mlp(self.value, self.norm(obs), self.precision)
@@ -219,12 +225,12 @@ class ValueNet(nn.Module):
         layer so every value the network predicts stays what it was (PopArt's preserving step): the
         statistics move, the values GAE and the loss already hold stay true."""
         old_mean, old_std = self.target.mean.clone(), self.target_std()
-        self.target.update(targets.reshape(-1, 1))
+        self.target.update(targets.reshape(-1, self.target.mean.shape[0]))
         if merge is not None:
             merge(self.target)
         new_mean, new_std = self.target.mean, self.target_std()
         last = self.value[-1]
-        last.weight.mul_(old_std / new_std)
+        last.weight.mul_((old_std / new_std).unsqueeze(-1))
         last.bias.mul_(old_std).add_(old_mean - new_mean).div_(new_std)
 
 
@@ -256,10 +262,10 @@ def make_actor(
 
 
 def make_critic(
-    obs_dim: int, hidden: list[int], normalize_target: bool = False, precision: Precision = "float32"
+    obs_dim: int, hidden: list[int], normalize_target: bool = False, precision: Precision = "float32", heads: int = 1
 ) -> ValueOperator:
-    """TensorDict keys: "critic" -> "state_value"."""
-    net = ValueNet(obs_dim, hidden, normalize_target, precision)
+    """TensorDict keys: "critic" -> "state_value" [..., heads]."""
+    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads)
     return ValueOperator(net, in_keys=["critic"], out_keys=["state_value"])
 
 

@@ -69,6 +69,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedP
 def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> ValueNet:
     """The checkpoint's value network (a ValueOperator's state: "module.<ValueNet key>")."""
     weights = {k.removeprefix("module."): v for k, v in ckpt["critic"].items()}
-    net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, normalize_target="target.mean" in weights)
+    heads = weights[f"value.{2 * len(config.train.critic_hidden)}.bias"].shape[0]  # > 1: a value per reward term
+    net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads)
     net.load_state_dict(weights)
     return net.to(device).eval()

@@ -22,6 +22,10 @@ One call of `PPO.update(batch)` is one iteration's learning:
      symmetry augmentation), so every sample also teaches the mirrored fall. The KL above
      stays on the original samples: only they were drawn from the collecting policy.
      `mirror_loss` logs how far the policy is from symmetric (see `mirror_error`).
+  7. With `value_per_term` (a decomposed critic), the critic has a value head per reward term and
+     GAE runs per term on the env's ("next", "reward_terms"); the advantage is the sum of the
+     terms' advantages (the task's, when the heads sum to V), the value loss covers every head.
+     `advantage_std/<term>` logs each term's share of the advantage's spread.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -37,6 +41,7 @@ import torch.distributed as dist
 from tensordict import TensorDict
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
+from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 from fallkit.config import PPOConfig
 from fallkit.env.mirror import ObservationMirror
@@ -79,12 +84,14 @@ class PPO:
         cfg: PPOConfig,
         mirror: ObservationMirror | None = None,
         potential: OrientationPotential | None = None,
+        term_names: list[str] | None = None,
     ):
         if cfg.mirror and mirror is None:
             raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
         self.cfg = cfg
         self.mirror = mirror if cfg.mirror else None
         self.potential = potential
+        self.term_names = term_names or []  # the env's reward terms, for value_per_term's logging
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
@@ -96,6 +103,7 @@ class PPO:
             loss_critic_type="l2",
             normalize_advantage=True,
             clip_value=cfg.value_clip if cfg.value_clip is not None else False,
+            reduction="none",  # _total_loss takes the means: a value loss per head needs its own scale first
         )
         self.gae = GAE(gamma=cfg.gamma, lmbda=cfg.lam, value_network=critic, average_gae=False)
         if potential is not None:
@@ -114,10 +122,7 @@ class PPO:
     def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, float]:
         """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures."""
         cfg = self.cfg
-        with torch.no_grad():
-            if self.potential is not None:
-                self.potential.shape(batch, cfg.gamma)
-            self.gae(batch)
+        advantage_stats = self._advantages(batch)
         critic_net = value_net(self.critic)
         if critic_net.target is not None:
             critic_net.update_target_statistics(batch[self.loss.tensor_keys.value_target], merge=merge_over_ranks)
@@ -158,24 +163,63 @@ class PPO:
                 torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.optimizer.step()
 
-                sums["loss_objective"] += out["loss_objective"].item()
+                sums["loss_objective"] += out["loss_objective"].mean().item()
                 sums["loss_critic"] += loss_critic.item()
-                sums["loss_entropy"] += out["loss_entropy"].item() if "loss_entropy" in out.keys() else 0.0
+                sums["loss_entropy"] += out["loss_entropy"].mean().item() if "loss_entropy" in out.keys() else 0.0
                 sums["clip_fraction"] += out["clip_fraction"].item() if "clip_fraction" in out.keys() else 0.0
                 sums["kl"] += kl.item()
                 count += 1
-        stats = {k: v / count for k, v in sums.items()}
+        stats = {k: v / count for k, v in sums.items()} | advantage_stats
         stats["actor_grad_norm"], stats["critic_grad_norm"] = (grad_norms / count).tolist()
         return stats | self._state_stats(net, critic_net)
+
+    @torch.no_grad()
+    def _advantages(self, batch: TensorDict) -> dict[str, float]:
+        """GAE into the batch (advantage, value target); with a value per term, each term's advantage spread."""
+        if self.potential is not None:
+            self.potential.shape(batch, self.cfg.gamma)
+        if not self.cfg.value_per_term:
+            self.gae(batch)
+            return {}
+        stds = self._gae_per_term(batch).flatten(0, -2).std(dim=0).tolist()
+        return {f"advantage_std/{name}": v for name, v in zip(self.term_names, stds)}
+
+    @torch.no_grad()
+    def _gae_per_term(self, batch: TensorDict) -> torch.Tensor:
+        """GAE of every reward term against its own value head (the critic's [N, T, K] output): sets the
+        summed advantage [N, T, 1] and the per-term value targets [N, T, K]; returns the terms' advantages."""
+        keys = self.loss.tensor_keys
+        self.critic(batch)
+        self.critic(batch["next"])
+        terms = batch["next", "reward_terms"]
+        if self.potential is not None:  # the shaping γΦ(s') − Φ(s) is the orientation head's to learn
+            shaping = batch["next", SHAPED_REWARD] - batch["next", "reward"]
+            column = self.term_names.index("orientation") if "orientation" in self.term_names else 0
+            terms = terms.clone()
+            terms[..., column] += shaping.squeeze(-1)
+        advantages, targets = vec_generalized_advantage_estimate(
+            self.cfg.gamma,
+            self.cfg.lam,
+            batch[keys.value],
+            batch["next", keys.value],
+            terms,
+            batch["next", "done"].expand_as(terms),  # an episode's end ends every term's sum
+            batch["next", "terminated"].expand_as(terms),
+            time_dim=-2,
+        )
+        batch.set(keys.advantage, advantages.sum(dim=-1, keepdim=True))
+        batch.set(keys.value_target, targets)
+        return advantages
 
     def _state_stats(self, net: GaussianPolicyNet, critic_net) -> dict[str, float]:
         """What the update leaves: learning rate, the policy's std and entropy, the value targets' statistics."""
         stats = {"learning_rate": self.learning_rate, "action_std": net.log_std.exp().mean().item()}
         # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
         stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
-        if critic_net.target is not None:
-            stats["value_target_mean"] = critic_net.target.mean.item()
-            stats["value_target_std"] = critic_net.target_std().item()
+        if critic_net.target is not None:  # per value head: the whole return's, or each term's
+            heads = [f"/{name}" for name in self.term_names] if critic_net.target.mean.numel() > 1 else [""]
+            for head, mean, std in zip(heads, critic_net.target.mean.tolist(), critic_net.target_std().tolist()):
+                stats[f"value_target_mean{head}"], stats[f"value_target_std{head}"] = mean, std
         return stats
 
     def _group_grad_norms(self) -> torch.Tensor:
@@ -213,14 +257,16 @@ class PPO:
 
 
 def _total_loss(out: TensorDict, critic_net) -> tuple[torch.Tensor, torch.Tensor]:
-    """(surrogate + value loss + entropy term, the value loss): the value loss in units of the value
-    targets' statistics where the critic normalises them (train.ppo.normalize_value)."""
+    """(surrogate + value loss + entropy term, the value loss), each the mean of the loss module's
+    per-sample terms: the value loss in units of the value targets' statistics where the critic
+    normalises them (train.ppo.normalize_value), each value head's in its own."""
     loss_critic = out["loss_critic"]
     if critic_net.target is not None:
         loss_critic = loss_critic / critic_net.target_std().square()
-    loss = out["loss_objective"] + loss_critic
+    loss_critic = loss_critic.mean()
+    loss = out["loss_objective"].mean() + loss_critic
     if "loss_entropy" in out.keys():
-        loss = loss + out["loss_entropy"]
+        loss = loss + out["loss_entropy"].mean()
     return loss, loss_critic
 
 

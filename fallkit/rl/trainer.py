@@ -74,14 +74,19 @@ class Trainer:
         self.actor = make_actor(
             obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
-        self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision).to(self.env.device)
+        heads = len(self.env.rewards.names) if tc.ppo.value_per_term else 1  # a value per reward term, or one
+        self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, heads)
+        self.critic.to(self.env.device)
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
         potential = OrientationPotential(
             self.spec, tc.ppo.orientation_potential, config.env.sensitivity_inputs.enabled, config.env.observe_gravity
         ) if tc.ppo.orientation_potential > 0 else None
-        self.ppo = PPO(self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None, potential)
+        self.ppo = PPO(
+            self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None, potential,
+            self.env.rewards.names,
+        )  # fmt: skip
         self.shuffle = torch.Generator().manual_seed(seed)
         self.iteration, self.start = 0, 0
         self.td: TensorDict | None = None  # the next collection's input

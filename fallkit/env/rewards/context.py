@@ -76,15 +76,19 @@ class RewardSum:
 
     def __call__(self, ctx: RewardContext) -> torch.Tensor:
         """The reward [N] of one step."""
+        return self.contributions(ctx).sum(dim=1)
+
+    def contributions(self, ctx: RewardContext) -> torch.Tensor:
+        """Each term's weighted contribution (weight · term · dt) [N, K], in `names` order; the reward is their sum."""
         n = ctx.action.shape[0]
         if not self.functions:
-            return torch.zeros(n, device=ctx.action.device)
-        values = torch.stack([_checked(name, fn(ctx), n) for name, fn in zip(self.names, self.functions)])  # [K, N]
-        weighted = values * self.scale[:, None]
-        self.last_mean = weighted.mean(dim=1)
+            return torch.zeros(n, 0, device=ctx.action.device)
+        values = torch.stack([_checked(name, fn(ctx), n) for name, fn in zip(self.names, self.functions)], dim=1)
+        weighted = values * self.scale
+        self.last_mean = weighted.mean(dim=0)
         self._sum += self.last_mean
         self._count += 1
-        return weighted.sum(dim=0)
+        return weighted
 
     def pop_means(self) -> dict[str, float]:
         """Per-term mean contribution per step since the last call (then starts over)."""

@@ -1,0 +1,105 @@
+"""A value head per reward term (train.ppo.value_per_term): what the env gives, what GAE makes of it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fallkit.config import EnvConfig, PPOConfig, RewardConfig
+from fallkit.env.fall_env import FallEnv
+from fallkit.poses.end_pose_set import random_end_poses
+from fallkit.rl.models import make_actor, make_critic, value_net
+from fallkit.rl.ppo import PPO
+from fallkit.rl.shaping import OrientationPotential
+from fallkit.sim import make_sim
+
+QUIET = EnvConfig(noise={"scale": 0.0}, disturbances={"enabled": False}, episode_length=0.4)
+
+
+def _rollout(biped, steps: int = 30):
+    """Three worlds over 30 steps of 20-step episodes: every world truncates at step 20 and restarts."""
+    poses = random_end_poses(biped, 16, torch.Generator().manual_seed(0))
+    env = FallEnv(biped, QUIET, RewardConfig(blend_time=0.2), poses, make_sim(biped, 3, "mujoco", body_state=True))
+    return env, env.rollout(steps, break_when_any_done=False)
+
+
+def test_reward_terms_are_the_summands_of_the_reward_up_to_an_episodes_last_step(biped):
+    env, batch = _rollout(biped)
+    terms, reward = batch["next", "reward_terms"], batch["next", "reward"]
+    assert terms.shape == (3, 30, len(env.rewards.names))
+    torch.testing.assert_close(terms.sum(-1, keepdim=True), reward)
+    assert batch["next", "truncated"][:, 19].all()
+    # the step that ended an episode keeps its terms (the reset that followed did not zero them)
+    offset = env.rewards.names.index("offset")
+    torch.testing.assert_close(terms[:, 19, offset], torch.full((3,), env.dt * 50.0))
+    assert (terms[:, :, env.rewards.names.index("impact")] < 0).any()  # a real fall: the terms are not constants
+    assert torch.equal(batch["reward_terms"][:, 20], torch.zeros(3, terms.shape[-1]))  # a new fall begins at 0
+
+
+@pytest.mark.parametrize("shaping", [0.0, 5.0])
+def test_the_terms_advantages_sum_to_the_advantage_of_the_whole_reward(biped, shaping):
+    """GAE is linear: with heads that sum to one critic's value, the summed per-term advantage is that
+    critic's advantage of the summed reward, across a truncation and a reset — with the orientation
+    shaping too (train.ppo.orientation_potential), which the orientation head takes."""
+    env, batch = _rollout(biped)
+    potential = OrientationPotential(biped, shaping) if shaping else None
+    if potential is not None:
+        potential.shape(batch, 0.99)
+    k, obs_dim = len(env.rewards.names), batch["critic"].shape[-1]
+    actor = make_actor(batch["policy"].shape[-1], batch["action"].shape[-1], [16], 0.3)
+    heads, whole = make_critic(obs_dim, [16], heads=k), make_critic(obs_dim, [16])
+    torch.manual_seed(0)
+    for p in value_net(heads).parameters():  # away from the near-zero init, so the values matter
+        p.data.normal_(0.0, 0.5)
+    whole.load_state_dict(heads.state_dict() | {
+        "module.value.2.weight": value_net(heads).value[-1].weight.sum(0, keepdim=True),
+        "module.value.2.bias": value_net(heads).value[-1].bias.sum(0, keepdim=True),
+    })  # fmt: skip
+    by_term = batch.clone()
+    PPO(actor, heads, PPOConfig(), potential=potential, term_names=env.rewards.names)._gae_per_term(by_term)
+    with torch.no_grad():
+        PPO(actor, whole, PPOConfig(value_per_term=False), potential=potential).gae(batch)
+    assert by_term["value_target"].shape == (3, 30, k)
+    torch.testing.assert_close(by_term["advantage"], batch["advantage"], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(by_term["value_target"].sum(-1, keepdim=True), batch["value_target"], atol=1e-4, rtol=1e-4)
+    assert batch["advantage"].std() > 0.1
+
+
+def test_training_with_a_value_per_term_logs_each_terms_advantage_and_loads(tmp_path):
+    from helpers import TINY, composed_config
+
+    from fallkit.eval.choice import critic_values
+    from fallkit.rl.policy import load_policy
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(composed_config(*TINY, "train.iterations=2"), tmp_path)  # value_per_term: the default
+    names = trainer.env.rewards.names
+    last = trainer.run()
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {f"advantage_std/{name}" for name in names} <= set(header)
+    critic = load_policy(last).critic
+    obs = torch.randn(2, critic.norm.mean.shape[0])
+    assert critic(obs).shape == (2, len(names))
+    goal = torch.tensor([[1.0, 0.0, 0.0, 0.0]]), torch.zeros(1, trainer.env.goal_joint_pos.shape[1])
+    columns = {"goal_root_quat": slice(0, 4), "goal_joint_pos": slice(4, 4 + goal[1].shape[1])}
+    values = critic_values(critic, obs, *goal, columns)  # eval.poses=auto scores V(s, g) = Σ heads
+    expected = obs.clone()
+    expected[:, :4], expected[:, columns["goal_joint_pos"]] = goal[0], goal[1]
+    torch.testing.assert_close(values[:, 0], critic(expected).sum(-1))
+
+
+def test_each_value_head_normalises_its_own_targets(tmp_path):
+    """train.ppo.normalize_value with a value per term: every head has its own target statistics, the
+    offset's returns are positive and every penalty's negative, and each is logged under its term."""
+    from helpers import TINY, composed_config
+
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(composed_config(*TINY, "train.iterations=2", "train.ppo.normalize_value=true"), tmp_path)
+    names = trainer.env.rewards.names
+    trainer.run()
+    target = value_net(trainer.critic).target
+    assert target.mean.shape == (len(names),) and target.count > 0
+    assert target.mean[names.index("offset")] > 0 and target.mean[names.index("impact")] < 0
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {f"value_target_std/{name}" for name in names} <= set(header)
