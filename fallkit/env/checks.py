@@ -11,6 +11,7 @@ from fallkit.sim.base import BatchSim
 def check_inputs(
     spec: RobotSpec, env_cfg: EnvConfig, reward_cfg: RewardConfig, end_poses: EndPoseSet, sim: BatchSim
 ) -> None:
+    """Raise on a simulator, end-pose set or blend time that does not fit the robot and episode."""
     if list(sim.spec.joint_names) != list(spec.joint_names):
         raise ValueError(f"FallEnv: the simulator's robot '{sim.spec.name}' has other joints than '{spec.name}'")
     if list(end_poses.joint_names) != list(spec.joint_names):

@@ -24,8 +24,9 @@ One call of `PPO.update(batch)` is one iteration's learning:
      `mirror_loss` logs how far the policy is from symmetric (see `mirror_error`).
   7. With `value_per_term` (a decomposed critic), the critic has a value head per reward term and
      GAE runs per term on the env's ("next", "reward_terms"); the advantage is the sum of the
-     terms' advantages (the task's, when the heads sum to V), the value loss covers every head.
-     `advantage_std/<term>` logs each term's share of the advantage's spread.
+     terms' advantages (the task's, when the heads sum to V), the value loss covers every head
+     (with `normalize_value`, each in units of its own targets' statistics; the shaping of 5.
+     joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
