@@ -11,6 +11,10 @@ One call of `PPO.update(batch)` is one iteration's learning:
   3. Before each minibatch's step, the KL between the collecting policy and the
      current one (exact, for diagonal Gaussians) adapts the learning rate as rsl_rl
      does: KL > 2·target → lr / 1.5, KL < target / 2 → lr · 1.5, within [lr_min, lr_max].
+     The KL reads the policy's outputs from the loss's own forward pass (a forward hook,
+     `_ActorOutputs`): the same weights and samples as a second pass would see, at no cost.
+     It is the update's one host read per minibatch (the rule decides on the host); the
+     logged figures stay on the device until the update ends.
   4. With `normalize_value`, the value targets join the critic's running target statistics
      first (its outputs preserved, `ValueNet.update_target_statistics`) and the value loss is
      taken in those units, so its gradients are O(1) whatever the scale of the returns.
@@ -67,14 +71,26 @@ def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tenso
     return kl.sum(-1).mean()
 
 
-def mirror_error(net: GaussianPolicyNet, mirror: ObservationMirror, obs: torch.Tensor, loc: torch.Tensor) -> torch.Tensor:
-    """Mean squared difference between π(mirror(o)) and mirror(π(o)), the policy means [action units²].
+def mirror_error(mirror: ObservationMirror, loc: torch.Tensor, mirrored_loc: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between π(mirror(o)) (`mirrored_loc`) and mirror(π(o)) (`loc` mirrored),
+    the policy means [action units²].
 
     0 for a policy that acts on a mirrored fall exactly as the mirror image of how it acts on the
     fall; the augmentation should drive it down, and without it nothing does.
     """
-    mirrored_loc, _ = net(mirror.actor(obs))
     return (mirrored_loc - mirror.action(loc)).square().mean()
+
+
+class _ActorOutputs:
+    """The (loc, scale) of the policy network's latest forward pass, detached: a forward hook on the
+    network the loss module calls (ClipPPOLoss keeps its own copy of the actor, so the hook goes there)."""
+
+    def __init__(self, net: GaussianPolicyNet):
+        self.loc = self.scale = None
+        net.register_forward_hook(self._keep)
+
+    def _keep(self, module, inputs, outputs) -> None:
+        self.loc, self.scale = (t.detach() for t in outputs)
 
 
 class PPO:
@@ -119,6 +135,7 @@ class PPO:
             [{"params": actor_params}, {"params": critic_params}], lr=cfg.learning_rate
         )
         self.learning_rate = cfg.learning_rate
+        self.actor_outputs = _ActorOutputs(policy_net(self.loss.actor_network))
 
     def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, float]:
         """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures."""
@@ -130,33 +147,31 @@ class PPO:
         flat = batch.reshape(-1)
         n = flat.shape[0]
         mb = n // cfg.num_minibatches
-        net = policy_net(self.actor)
-        sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "kl": 0.0, "clip_fraction": 0.0}
-        grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
+        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction"]
         if self.mirror is not None:
-            sums["mirror_loss"] = 0.0
+            names.append("mirror_loss")
+        sums = torch.zeros(len(names), device=flat.device)  # read once, after the last minibatch
+        grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
         count = 0
         for _ in range(cfg.epochs):
             perm = torch.randperm(n, generator=generator, device="cpu").to(flat.device)
             for k in range(cfg.num_minibatches):
                 data = flat[perm[k * mb : (k + 1) * mb]]
-                # KL of this minibatch between the collecting policy and the current one (the collected
-                # samples only, even with the mirror: only they were drawn from the collecting policy)
-                with torch.no_grad():
-                    loc, scale = net(data["policy"])
-                    kl = gaussian_kl(data["loc"], data["scale"], loc, scale)
-                    kl = _mean_over_ranks(kl)
-                    if self.mirror is not None:
-                        sums["mirror_loss"] += mirror_error(net, self.mirror, data["policy"], loc).item()
+                old_loc, old_scale = data["loc"], data["scale"]  # the collecting policy's
+                if self.mirror is not None:
+                    data = self._with_mirror_image(data)
+                out = self.loss(data)
+                loss, loss_critic = _total_loss(out, critic_net)
+                # KL of this minibatch between the collecting policy and the current one, from the
+                # loss's forward pass (the collected samples only, even with the mirror: only they
+                # were drawn from the collecting policy), before this minibatch's step
+                loc, scale = self.actor_outputs.loc[:mb], self.actor_outputs.scale[:mb]
+                kl = _mean_over_ranks(gaussian_kl(old_loc, old_scale, loc, scale))
                 self.learning_rate = adapt_learning_rate(self.learning_rate, kl.item(), cfg)
                 actor_group, critic_group = self.optimizer.param_groups
                 actor_group["lr"] = self.learning_rate
                 critic_group["lr"] = cfg.critic_learning_rate or self.learning_rate
 
-                if self.mirror is not None:
-                    data = self._with_mirror_image(data)
-                out = self.loss(data)
-                loss, loss_critic = _total_loss(out, critic_net)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 _average_gradients(self.params)
@@ -164,15 +179,20 @@ class PPO:
                 torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.optimizer.step()
 
-                sums["loss_objective"] += out["loss_objective"].mean().item()
-                sums["loss_critic"] += loss_critic.item()
-                sums["loss_entropy"] += out["loss_entropy"].mean().item() if "loss_entropy" in out.keys() else 0.0
-                sums["clip_fraction"] += out["clip_fraction"].item() if "clip_fraction" in out.keys() else 0.0
-                sums["kl"] += kl.item()
+                figures = [
+                    out["loss_objective"].mean(),
+                    loss_critic,
+                    out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
+                    kl,
+                    out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
+                ]
+                if self.mirror is not None:
+                    figures.append(mirror_error(self.mirror, loc, self.actor_outputs.loc[mb:]))
+                sums += torch.stack([f.detach().to(sums) for f in figures])
                 count += 1
-        stats = {k: v / count for k, v in sums.items()} | advantage_stats
+        stats = dict(zip(names, (sums / count).tolist())) | advantage_stats
         stats["actor_grad_norm"], stats["critic_grad_norm"] = (grad_norms / count).tolist()
-        return stats | self._state_stats(net, critic_net)
+        return stats | self._state_stats(policy_net(self.actor), critic_net)
 
     @torch.no_grad()
     def _advantages(self, batch: TensorDict) -> dict[str, float]:

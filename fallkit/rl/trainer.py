@@ -108,8 +108,6 @@ class Trainer:
     def run(self) -> Path:
         """Train until the iteration budget, the time budget or a stop signal; returns the last checkpoint."""
         tc = self.config.train
-        if self.td is None:
-            self.td = self._first_observation()
         metrics, stop = MetricsLog(self.run_dir, self.main_rank, self.start, self.resumed_from), StopFlag()
         progress = Progress(tc.iterations, self.iteration, tc.max_minutes, self.main_rank)
         try:
@@ -138,6 +136,8 @@ class Trainer:
 
     def collect(self) -> TensorDict:
         """num_steps policy steps in every env: the [num_envs, num_steps] batch."""
+        if self.td is None:  # a new run (a resumed one continues from its checkpoint's observation)
+            self.td = self._first_observation()
         batch, self.td = collect(self.env, self.actor, self.td, self.config.train.num_steps)
         self.impacts.add(batch)
         return batch
