@@ -29,29 +29,6 @@ def test_gaussian_kl_matches_torch():
     assert gaussian_kl(loc0, s0, loc1, s1).item() == pytest.approx(torch.distributions.kl_divergence(p, q).mean().item(), rel=1e-5)
 
 
-def test_the_update_takes_its_kl_from_the_losss_own_forward_pass_before_the_step(tmp_path):
-    """No second actor pass for the KL: the loss's forward hook gives the same (loc, scale) a separate
-    pass would, and the KL the rate rule reads is measured before the minibatch's step — with one
-    minibatch in one epoch, the collecting policy against itself."""
-    from helpers import TINY, composed_config
-
-    from fallkit.rl.models import policy_net
-    from fallkit.rl.trainer import Trainer
-
-    trainer = Trainer(composed_config(*TINY, "train.ppo.epochs=1", "train.ppo.num_minibatches=1"), tmp_path)
-    ppo, batch = trainer.ppo, trainer.collect()
-    ppo._advantages(batch)
-    data = batch.reshape(-1)
-    ppo.loss(data)
-    with torch.no_grad():
-        loc, scale = policy_net(trainer.actor)(data["policy"])
-    assert torch.equal(ppo.actor_outputs.loc, loc) and torch.equal(ppo.actor_outputs.scale, scale)
-    assert ppo.update(batch)["kl"] < 1e-9
-    with torch.no_grad():  # ... and not because nothing moved: after the step the policy differs
-        moved = gaussian_kl(data["loc"], data["scale"], *policy_net(trainer.actor)(data["policy"]))
-    assert moved > 1e-6
-
-
 def test_running_norm_matches_whole_batch_statistics_and_updates_in_place():
     norm = RunningNorm(3)
     mean_buffer = norm.mean

@@ -148,6 +148,26 @@ def test_sum_is_weighted_times_dt_and_logs_means():
     assert rewards.pop_means() == {}
 
 
+def test_impact_is_reported_per_component_when_the_components_are_named():
+    """Given the components, the impact term's columns are its per-component summands (for a value head
+    each, train.ppo.value_per_component); the reward and the logged per-term means are unchanged."""
+    f = torch.zeros(N, S, C, 3)
+    f[0, 2, 4, 1] = -500.0  # head (w=4), 0.5 kN
+    f[0, 0, 2, 2] = 1000.0  # elbows (w=2), 1 kN
+    f[1, 3, 1, 0] = 3000.0  # legs (w=1), 3 kN
+    ctx = make_ctx(make_state(contact_force=f, root_lin_acc=torch.ones(N, 3)))
+    cfg = RewardConfig(**{name: 0.0 for name in BUILTIN_TERMS} | {"impact": 200.0, "root_acc": 0.2})
+    components = ["pelvis", "legs", "elbows", "shoulders", "head"]
+    split, whole = RewardSum(cfg, dt=0.02, components=components), RewardSum(cfg, dt=0.02)
+    assert split.columns == [f"impact/{c}" for c in components] + ["root_acc"] and whole.columns == whole.names
+    columns = split.contributions(ctx)
+    want = torch.zeros(N, C)
+    want[0, 4], want[0, 2], want[1, 1] = -((4 * 0.5) ** 2), -((2 * 1.0) ** 2), -(3.0**2)
+    torch.testing.assert_close(columns[:, :C], 0.02 * 200.0 * want)
+    torch.testing.assert_close(columns.sum(1), whole(ctx))
+    assert split.pop_means() == pytest.approx(whole.pop_means())
+
+
 def test_weight_zero_skips_the_term():
     # contact_force None would crash the impact term: with weight 0 it is never called
     state = make_state()

@@ -172,7 +172,8 @@ def test_a_bfloat16_run_is_evaluated_and_exported_in_float32(tmp_path):
 
 def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_policy(tmp_path, monkeypatch):
     """The KL that adapts the learning rate is the exact KL between the collecting policy and the policy
-    about to step: 0 before the first step, and after one step the KL of the stepped policy."""
+    about to step: 0 before the first step, and after one step the KL of the stepped policy (read from
+    the loss's own forward pass, `_ActorOutputs`, not a second one)."""
     import copy
 
     from fallkit.rl import ppo as ppo_module
@@ -189,7 +190,7 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
     actor, critic = copy.deepcopy(trainer.actor), copy.deepcopy(trainer.critic)
     trainer.ppo.update(batch.clone(), generator=torch.Generator().manual_seed(0))
     assert seen[0] == 0.0 and seen[1] > 0.0
-    one_step = ppo_module.PPO(actor, critic, cfg.train.ppo.model_copy(update={"epochs": 1}))
+    one_step = ppo_module.PPO(actor, critic, cfg.train.ppo.model_copy(update={"epochs": 1}), rewards=trainer.env.rewards)
     one_step.update(batch.clone(), generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
         loc, scale = policy_net(actor)(batch["policy"].reshape(-1, batch["policy"].shape[-1]))

@@ -26,13 +26,16 @@ def _rollout(biped, steps: int = 30):
 def test_reward_terms_are_the_summands_of_the_reward_up_to_an_episodes_last_step(biped):
     env, batch = _rollout(biped)
     terms, reward = batch["next", "reward_terms"], batch["next", "reward"]
-    assert terms.shape == (3, 30, len(env.rewards.names))
+    columns = env.rewards.columns  # a column per term, the impact one per component
+    assert columns == [f"impact/{c}" for c in biped.component_names] + env.rewards.names[1:]
+    assert terms.shape == (3, 30, len(columns))
     torch.testing.assert_close(terms.sum(-1, keepdim=True), reward)
     assert batch["next", "truncated"][:, 19].all()
     # the step that ended an episode keeps its terms (the reset that followed did not zero them)
-    offset = env.rewards.names.index("offset")
+    offset = columns.index("offset")
     torch.testing.assert_close(terms[:, 19, offset], torch.full((3,), env.dt * 50.0))
-    assert (terms[:, :, env.rewards.names.index("impact")] < 0).any()  # a real fall: the terms are not constants
+    impact = terms[..., : len(biped.component_names)]
+    assert (impact < 0).any() and (impact.sum((0, 1)) < 0).sum() >= 2  # a real fall, on more than one part
     assert torch.equal(batch["reward_terms"][:, 20], torch.zeros(3, terms.shape[-1]))  # a new fall begins at 0
 
 
@@ -56,13 +59,37 @@ def test_the_terms_advantages_sum_to_the_advantage_of_the_whole_reward(biped, sh
         "module.value.2.bias": value_net(heads).value[-1].bias.sum(0, keepdim=True),
     })  # fmt: skip
     by_term = batch.clone()
-    PPO(actor, heads, PPOConfig(), potential=potential, term_names=env.rewards.names)._gae_per_term(by_term)
+    PPO(actor, heads, PPOConfig(), potential=potential, rewards=env.rewards)._gae_per_term(by_term)
     with torch.no_grad():
         PPO(actor, whole, PPOConfig(value_per_term=False), potential=potential).gae(batch)
     assert by_term["value_target"].shape == (3, 30, k)
     torch.testing.assert_close(by_term["advantage"], batch["advantage"], atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(by_term["value_target"].sum(-1, keepdim=True), batch["value_target"], atol=1e-4, rtol=1e-4)
     assert batch["advantage"].std() > 0.1
+
+
+@pytest.mark.parametrize("per_component", [False, True])
+def test_value_heads_per_term_or_per_component(biped, per_component):
+    """value_per_term: the impact columns add up into one impact head (and GAE sees the term's reward);
+    value_per_component: a head per column."""
+    from fallkit.rl.ppo import value_heads
+
+    env, batch = _rollout(biped)
+    names, column_head = value_heads(env.rewards, PPOConfig(value_per_component=per_component))
+    assert names == (env.rewards.columns if per_component else env.rewards.names)
+    obs_dim = batch["critic"].shape[-1]
+    actor = make_actor(batch["policy"].shape[-1], batch["action"].shape[-1], [16], 0.3)
+    ppo = PPO(actor, make_critic(obs_dim, [16], heads=len(names)), PPOConfig(value_per_component=per_component),
+              rewards=env.rewards)  # fmt: skip
+    advantages = ppo._gae_per_term(batch)
+    assert advantages.shape[-1] == len(names) == batch["value_target"].shape[-1]
+    if not per_component:
+        assert column_head.tolist() == [0] * len(biped.component_names) + list(range(1, len(names)))
+
+
+def test_a_value_per_component_needs_a_value_per_term():
+    with pytest.raises(ValueError, match="value_per_component=true needs train.ppo.value_per_term=true"):
+        PPOConfig(value_per_term=False, value_per_component=True)
 
 
 def test_training_with_a_value_per_term_logs_each_terms_advantage_and_loads(tmp_path):
@@ -103,3 +130,46 @@ def test_each_value_head_normalises_its_own_targets(tmp_path):
     assert target.mean[names.index("offset")] > 0 and target.mean[names.index("impact")] < 0
     header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
     assert {f"value_target_std/{name}" for name in names} <= set(header)
+
+
+def test_a_conditioned_critic_scales_each_components_impact_head_by_its_weight_squared(tmp_path):
+    """train.ppo.value_per_component with sensitivity inputs: head "impact/<c>" is the MLP's output times
+    w_c², w_c read from the critic's own observation (ln w_c); other heads are the MLP's; a loaded
+    checkpoint scales alike."""
+    from helpers import TINY, composed_config
+
+    from fallkit.rl.models import ValueNet
+    from fallkit.rl.policy import load_policy
+    from fallkit.rl.ppo import value_heads
+    from fallkit.rl.trainer import Trainer
+
+    on = ["env.sensitivity_inputs.enabled=true", "train.ppo.value_per_component=true", "train.iterations=1"]
+    trainer = Trainer(composed_config(*TINY, *on), tmp_path)
+    names = value_heads(trainer.env.rewards, trainer.config.train.ppo)[0]
+    net = value_net(trainer.critic)
+    obs = trainer.env.reset()["critic"]
+    for i, c in enumerate(trainer.spec.component_names):  # each impact head reads its own component's ln w
+        torch.testing.assert_close(obs[:, net.weight_columns[names.index(f"impact/{c}")]], trainer.env.sensitivity[:, i].log())
+    assert (net.weight_columns[len(trainer.spec.component_names) :] == -1).all()
+    plain = ValueNet(obs.shape[-1], [16, 16], precision=net.precision, heads=len(names))
+    plain.load_state_dict({k: v for k, v in net.state_dict().items() if k != "weight_columns"})
+    with torch.no_grad():
+        scaled, unscaled = net(obs), plain(obs)
+    squared = trainer.env.sensitivity.square()
+    torch.testing.assert_close(scaled[:, : squared.shape[1]], unscaled[:, : squared.shape[1]] * squared)
+    torch.testing.assert_close(scaled[:, squared.shape[1] :], unscaled[:, squared.shape[1] :])
+    loaded = load_policy(trainer.run()).critic
+    assert torch.equal(loaded.weight_columns, net.weight_columns)
+    net.precision = "float32"  # as loaded policies compute
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(obs), net(obs))
+
+
+def test_weighted_impact_heads_refuse_value_target_normalisation():
+    from helpers import composed_config
+
+    from fallkit.config import ConfigError
+
+    on = ["env.sensitivity_inputs.enabled=true", "train.ppo.value_per_component=true", "train.ppo.normalize_value=true"]
+    with pytest.raises(ConfigError, match="set normalize_value=false"):
+        composed_config(*on)

@@ -78,6 +78,16 @@ class FallkitConfig(Section):
         return self
 
     @model_validator(mode="after")
+    def _weighted_impact_heads_unnormalised(self) -> "FallkitConfig":
+        ppo = self.train.ppo
+        if ppo.value_per_component and ppo.normalize_value and self.env.sensitivity_inputs.enabled:
+            raise ValueError(
+                "train.ppo.value_per_component with env.sensitivity_inputs scales each impact head by its observed "
+                "w_c², which train.ppo.normalize_value's target statistics cannot follow: set normalize_value=false"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _blend_within_the_episode(self) -> "FallkitConfig":
         if self.reward.blend_time > self.env.episode_length:
             raise ValueError(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from fallkit.config.section import Section
 
@@ -63,6 +63,19 @@ class PPOConfig(Section):
         "head learns a simpler function than the whole return (fallkit.rl.ppo; measured on three seeds, "
         "docs/training.md); false: one value for the whole return (the paper)",
     )
+    value_per_component: bool = Field(
+        False,
+        description="with value_per_term: the impact term's value split further, one head per robot component (its "
+        "sensitivity-weighted impact alone), so the critic tells apart which part hits; with env.sensitivity_inputs "
+        "each such head is scaled by the observed w_c² (fallkit.rl.models.ValueNet), so it learns the unweighted "
+        "return; off until a paired run shows it pays (docs/training.md, docs/sensitivity_inputs.md)",
+    )
+
+    @model_validator(mode="after")
+    def _per_component_needs_per_term(self) -> PPOConfig:
+        if self.value_per_component and not self.value_per_term:
+            raise ValueError("train.ppo.value_per_component=true needs train.ppo.value_per_term=true (a value per term)")
+        return self
 
 
 class TrainConfig(Section):

@@ -15,7 +15,8 @@ Keys (TensorDict):
   "contact_force"  [N, C]  per component, the largest |f_c| over the physics substeps
                            of the step [N]: for metrics, not an input
   "reward"         [N, 1]  policy_dt · Σ_k weight_k · term_k (fallkit.env.rewards)
-  "reward_terms"   [N, K]  the reward's K summands (RewardSum.names order; 0 at a reset): not an input
+  "reward_terms"   [N, K]  the reward's K summands (RewardSum.columns order: a term per column, the
+                           impact one per component; 0 at a reset): not an input
   "done", "terminated", "truncated" [N, 1]; terminated is always False
 Per-term reward means: `env.pop_reward_terms()` / `env.reward_terms_mean`.
 
@@ -289,7 +290,7 @@ class FallEnv(EnvBase):
             )
             if self.disturbances.body_ids.numel() == 0:  # the robot names none of the roles
                 self.disturbances = None
-        self.rewards = RewardSum(self.reward_cfg, self.dt, self.device)
+        self.rewards = RewardSum(self.reward_cfg, self.dt, self.device, components=spec.component_names)
 
     def _make_constants(self) -> None:
         """Robot and goal constants on the device: nominal pose, joint limits, sensitivity,
@@ -317,7 +318,7 @@ class FallEnv(EnvBase):
         self.last_action = torch.zeros(n, j, **f32)
         self.last_last_action = torch.zeros(n, j, **f32)
         self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
-        self._reward_terms = torch.zeros(n, len(self.rewards.names), **f32)
+        self._reward_terms = torch.zeros(n, len(self.rewards.columns), **f32)
         # [N, C] w_c of every world: the robot's, or drawn per episode with env.sensitivity_inputs
         self.sensitivity = self.robot_sensitivity.expand(n, -1).clone()
         self._all = torch.ones(n, dtype=torch.bool, device=dev)
@@ -333,7 +334,7 @@ class FallEnv(EnvBase):
             policy=Unbounded((n, da), device=dev),
             critic=Unbounded((n, dc), device=dev),
             contact_force=Unbounded((n, len(spec.components)), device=dev),
-            reward_terms=Unbounded((n, len(self.rewards.names)), device=dev),
+            reward_terms=Unbounded((n, len(self.rewards.columns)), device=dev),
             shape=(n,),
             device=dev,
         )

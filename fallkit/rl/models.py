@@ -194,6 +194,13 @@ class ValueNet(nn.Module):
     running statistics of the value targets (`target`), and the output is scaled back: value targets of
     about −50 with a std of about 40 (biped20, train=quick) become O(1) targets (train.ppo.normalize_value).
     With heads > 1 (train.ppo.value_per_term) head k is the value of reward term k alone; V(s) is their sum.
+
+    `weight_columns` (one per head, −1 for none) name, for a head that predicts a component's impact
+    (train.ppo.value_per_component) of a policy with sensitivity inputs, the observation column holding
+    ln w_c: that head's output is multiplied by w_c² = exp(2 ln w_c). The component's impact reward is
+    w_c² times its unweighted impact, so the MLP learns the unweighted return, whose scale does not move
+    with the weight drawn for the episode (0.04 … 25 × the robot's over ln-uniform 0.2 … 5 weights).
+    Kept as a buffer, so a loaded checkpoint scales as in training.
     """
 
     def __init__(
@@ -203,17 +210,26 @@ class ValueNet(nn.Module):
         normalize_target: bool = False,
         precision: Precision = "float32",
         heads: int = 1,
+        weight_columns: list[int] | None = None,
     ):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
         self.value = mlp(obs_dim, hidden, heads)
         self.precision = precision
         self.target = RunningNorm(heads) if normalize_target else None
+        scaled = weight_columns is not None and any(c >= 0 for c in weight_columns)
+        if scaled and (normalize_target or len(weight_columns) != heads):
+            raise ValueError("ValueNet: weight_columns need one entry per head and no target normalisation")
+        columns = torch.tensor(weight_columns, dtype=torch.long) if scaled else None
+        self.register_buffer("weight_columns", columns)  # None: not in the state dict (older checkpoints load)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         v = run_mlp(self.value, self.norm(obs), self.precision)
         if self.target is not None:
             v = torch.addcmul(self.target.mean, v, self.target_std())
+        if self.weight_columns is not None:
+            squared_weight = torch.exp(2.0 * obs[..., self.weight_columns.clamp(min=0)])
+            v = torch.where(self.weight_columns >= 0, v * squared_weight, v)
         return v
 
     def target_std(self) -> torch.Tensor:
@@ -261,11 +277,24 @@ def make_actor(
     )
 
 
+def impact_weight_columns(spec: RobotSpec, heads: list[str], gravity: bool = False) -> list[int]:
+    """For a critic with sensitivity inputs, each value head's column of ln w_c in the critic observation
+    (which starts with the actor's): that of component c for head "impact/<c>", −1 for every other head."""
+    start = actor_slices(spec, sensitivity=True, gravity=gravity)["sensitivity"].start
+    index = {f"impact/{c}": start + i for i, c in enumerate(spec.component_names)}
+    return [index.get(name, -1) for name in heads]
+
+
 def make_critic(
-    obs_dim: int, hidden: list[int], normalize_target: bool = False, precision: Precision = "float32", heads: int = 1
+    obs_dim: int,
+    hidden: list[int],
+    normalize_target: bool = False,
+    precision: Precision = "float32",
+    heads: int = 1,
+    weight_columns: list[int] | None = None,
 ) -> ValueOperator:
     """TensorDict keys: "critic" -> "state_value" [..., heads]."""
-    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads)
+    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads, weight_columns)
     return ValueOperator(net, in_keys=["critic"], out_keys=["state_value"])
 
 

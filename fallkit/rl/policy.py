@@ -70,6 +70,8 @@ def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> Va
     """The checkpoint's value network (a ValueOperator's state: "module.<ValueNet key>")."""
     weights = {k.removeprefix("module."): v for k, v in ckpt["critic"].items()}
     heads = weights[f"value.{2 * len(config.train.critic_hidden)}.bias"].shape[0]  # > 1: a value per reward term
-    net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads)
+    columns = weights["weight_columns"].tolist() if "weight_columns" in weights else None  # w²-scaled impact heads
+    net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads,
+                   weight_columns=columns)  # fmt: skip
     net.load_state_dict(weights)
     return net.to(device).eval()

@@ -31,6 +31,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      terms' advantages (the task's, when the heads sum to V), the value loss covers every head
      (with `normalize_value`, each in units of its own targets' statistics; the shaping of 5.
      joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
+     The env reports the impact term per component (RewardSum.columns); those columns are summed
+     into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -50,6 +52,7 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 
 from fallkit.config import PPOConfig
 from fallkit.env.mirror import ObservationMirror
+from fallkit.env.rewards.context import RewardSum
 from fallkit.rl.models import GaussianPolicyNet, RunningNorm, policy_net, value_net
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 
@@ -69,6 +72,14 @@ def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tenso
     """Mean over the batch of KL(old ‖ new) for diagonal Gaussians."""
     kl = torch.log(scale / scale_old) + (scale_old.square() + (loc_old - loc).square()) / (2.0 * scale.square()) - 0.5
     return kl.sum(-1).mean()
+
+
+def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Tensor | None]:
+    """The value heads of a decomposed critic: one per reward term (the impact per component's columns
+    summed into the impact head: `column_head`), or one per reward column with `value_per_component`."""
+    if cfg.value_per_component:
+        return list(rewards.columns), None
+    return list(rewards.names), rewards.column_term
 
 
 def mirror_error(mirror: ObservationMirror, loc: torch.Tensor, mirrored_loc: torch.Tensor) -> torch.Tensor:
@@ -101,14 +112,18 @@ class PPO:
         cfg: PPOConfig,
         mirror: ObservationMirror | None = None,
         potential: OrientationPotential | None = None,
-        term_names: list[str] | None = None,
+        rewards: RewardSum | None = None,
     ):
         if cfg.mirror and mirror is None:
             raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
+        if cfg.value_per_term and rewards is None:
+            raise ValueError("PPO: train.ppo.value_per_term needs the env's reward terms (rewards=env.rewards)")
         self.cfg = cfg
         self.mirror = mirror if cfg.mirror else None
         self.potential = potential
-        self.term_names = term_names or []  # the env's reward terms, for value_per_term's logging
+        # with value_per_term: what each value head learns (names for the logs), and which head each of
+        # the env's reward columns adds to (None: one head per column)
+        self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
@@ -213,6 +228,8 @@ class PPO:
         self.critic(batch)
         self.critic(batch["next"])
         terms = batch["next", "reward_terms"]
+        if self.column_head is not None:  # the impact per component summed back into its term's head
+            terms = terms.new_zeros(*terms.shape[:-1], len(self.term_names)).index_add_(-1, self.column_head, terms)
         if self.potential is not None:  # the shaping γΦ(s') − Φ(s) is the orientation head's to learn
             shaping = batch["next", SHAPED_REWARD] - batch["next", "reward"]
             column = self.term_names.index("orientation") if "orientation" in self.term_names else 0

@@ -35,9 +35,17 @@ from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
-from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
+from fallkit.rl.models import (
+    impact_weight_columns,
+    joint_prior,
+    make_actor,
+    make_critic,
+    policy_net,
+    resolve_precision,
+    value_net,
+)
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
-from fallkit.rl.ppo import PPO, distributed, merge_over_ranks
+from fallkit.rl.ppo import PPO, distributed, merge_over_ranks, value_heads
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -74,8 +82,13 @@ class Trainer:
         self.actor = make_actor(
             obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
-        heads = len(self.env.rewards.names) if tc.ppo.value_per_term else 1  # a value per reward term, or one
-        self.critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, heads)
+        heads = value_heads(self.env.rewards, tc.ppo)[0] if tc.ppo.value_per_term else ["value"]  # per term, or one
+        weight_columns = None  # a component's impact head of a critic that observes the weights: scaled by w_c²
+        if tc.ppo.value_per_component and config.env.sensitivity_inputs.enabled:
+            weight_columns = impact_weight_columns(self.spec, heads, config.env.observe_gravity)
+        self.critic = make_critic(
+            critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
+        )
         self.critic.to(self.env.device)
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
@@ -85,7 +98,7 @@ class Trainer:
         ) if tc.ppo.orientation_potential > 0 else None
         self.ppo = PPO(
             self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None, potential,
-            self.env.rewards.names,
+            self.env.rewards,
         )  # fmt: skip
         self.shuffle = torch.Generator().manual_seed(seed)
         self.iteration, self.start = 0, 0

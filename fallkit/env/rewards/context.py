@@ -9,6 +9,12 @@ term by its config weight and by the policy step dt and sums them:
 
 Scaling by dt (as rsl_rl / Isaac Lab reward managers do) makes Table I's weights
 rate-independent: the +50 offset earns 1.0 per 50 Hz step, 50 per simulated second.
+
+A term that is a sum over the robot's components may also offer its summands as
+`term.by_component(ctx) -> Tensor [N, C]` (the built-in `impact` does). Given the
+component names, `RewardSum` then reports them as separate columns
+("impact/head", ...): the reward is the same sum, and a critic can keep a value
+per column (train.ppo.value_per_component).
 """
 
 from __future__ import annotations
@@ -54,11 +60,19 @@ class RewardContext:
 class RewardSum:
     """Loads the active terms from the registry and sums them, weighted, times dt.
 
-    Keeps the per-term mean over worlds of each step's weighted contribution
-    (weight · term · dt, what enters the reward), for logging.
+    `columns` are the reward's summands as reported (`contributions`): one per term, or one per
+    component for a term that offers `by_component` when `components` are given; `column_term[i]`
+    is the index in `names` of column i's term. Keeps the per-term mean over worlds of each step's
+    weighted contribution (weight · term · dt, what enters the reward), for logging.
     """
 
-    def __init__(self, config: RewardConfig, dt: float, device: torch.device | str = "cpu"):
+    def __init__(
+        self,
+        config: RewardConfig,
+        dt: float,
+        device: torch.device | str = "cpu",
+        components: list[str] | None = None,
+    ):
         self.config = config
         self.dt = dt
         active = {k: w for k, w in config.weights().items() if w != 0.0}
@@ -69,7 +83,17 @@ class RewardSum:
         self.functions: list[RewardTerm] = [
             registry.load("fallkit.rewards", config.terms.get(name, name)) for name in self.names
         ]
-        self.scale = torch.tensor([w * dt for w in active.values()], device=device)  # [K]
+        self.num_components = len(components or [])
+        self.split = [components is not None and hasattr(fn, "by_component") for fn in self.functions]
+        self.columns: list[str] = []
+        column_term: list[int] = []
+        for k, (name, split) in enumerate(zip(self.names, self.split)):
+            parts = [f"{name}/{c}" for c in components] if split else [name]
+            self.columns += parts
+            column_term += [k] * len(parts)
+        self.column_term = torch.tensor(column_term, dtype=torch.long, device=device)
+        weights = torch.tensor(list(active.values()), device=device)
+        self.scale = weights[self.column_term] * dt  # [columns]
         self.last_mean = torch.zeros(len(self.names), device=device)
         self._sum = torch.zeros(len(self.names), device=device)
         self._count = 0
@@ -79,13 +103,17 @@ class RewardSum:
         return self.contributions(ctx).sum(dim=1)
 
     def contributions(self, ctx: RewardContext) -> torch.Tensor:
-        """Each term's weighted contribution (weight · term · dt) [N, K], in `names` order; the reward is their sum."""
+        """Each column's weighted contribution (weight · term · dt) [N, len(columns)], in `columns` order;
+        the reward is their sum."""
         n = ctx.action.shape[0]
         if not self.functions:
             return torch.zeros(n, 0, device=ctx.action.device)
-        values = torch.stack([_checked(name, fn(ctx), n) for name, fn in zip(self.names, self.functions)], dim=1)
-        weighted = values * self.scale
-        self.last_mean = weighted.mean(dim=0)
+        parts = [
+            _checked_columns(name, fn.by_component(ctx), n, self.num_components) if split else _checked(name, fn(ctx), n)
+            for name, fn, split in zip(self.names, self.functions, self.split)
+        ]
+        weighted = torch.cat([p if p.dim() == 2 else p[:, None] for p in parts], dim=1) * self.scale
+        self.last_mean = torch.zeros_like(self._sum).index_add_(0, self.column_term, weighted.mean(dim=0))
         self._sum += self.last_mean
         self._count += 1
         return weighted
@@ -104,4 +132,11 @@ def _checked(name: str, value: Any, n: int) -> torch.Tensor:
     if not isinstance(value, torch.Tensor) or value.shape != (n,):
         got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
         raise ValueError(f"reward term '{name}' must return a tensor of shape [{n}], got {got}")
+    return value
+
+
+def _checked_columns(name: str, value: Any, n: int, c: int) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor) or value.shape != (n, c):
+        got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+        raise ValueError(f"reward term '{name}': by_component must return a tensor of shape [{n}, {c}], got {got}")
     return value

@@ -7,8 +7,8 @@ import torch
 from fallkit.env.rewards.context import RewardContext
 
 
-def impact(ctx: RewardContext) -> torch.Tensor:
-    """−Σ_c (w_c ‖f_c‖∞)² [force_unit²], f_c the net contact force on component c.
+def impact_by_component(ctx: RewardContext) -> torch.Tensor:
+    """−(w_c ‖f_c‖∞)² of every component c [N, C] (force_unit²); `impact` is their sum.
 
     f_c is taken at the WORST physics substep of the policy step (the largest
     ‖f_c‖∞ over the substeps): a 1–3 kN impact peak lasts a few milliseconds and
@@ -22,7 +22,17 @@ def impact(ctx: RewardContext) -> torch.Tensor:
     f = f * (1.0 / ctx.force_unit)
     if ctx.force_clip is not None:
         f = f.clamp(max=ctx.force_clip)
-    return -((f * ctx.sensitivity).square()).sum(dim=-1)
+    return -(f * ctx.sensitivity).square()
+
+
+def impact(ctx: RewardContext) -> torch.Tensor:
+    """−Σ_c (w_c ‖f_c‖∞)² [force_unit²], f_c the net contact force on component c (see `impact_by_component`)."""
+    return impact_by_component(ctx).sum(dim=-1)
+
+
+# Its summands, one per component: the environment reports them as separate reward columns, so a
+# critic can keep a value per component (train.ppo.value_per_component; fallkit.env.rewards.context).
+impact.by_component = impact_by_component
 
 
 def root_acc(ctx: RewardContext) -> torch.Tensor:
