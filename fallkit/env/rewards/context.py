@@ -112,8 +112,11 @@ class RewardSum:
             _checked_columns(name, fn.by_component(ctx), n, self.num_components) if split else _checked(name, fn(ctx), n)
             for name, fn, split in zip(self.names, self.functions, self.split)
         ]
-        weighted = torch.cat([p if p.dim() == 2 else p[:, None] for p in parts], dim=1) * self.scale
-        self.last_mean = torch.zeros_like(self._sum).index_add_(0, self.column_term, weighted.mean(dim=0))
+        weighted = torch.column_stack(parts) * self.scale  # a [N] term is one column, an [N, C] one C columns
+        column_mean = weighted.mean(dim=0)
+        if any(self.split):  # the split terms' columns summed back into their term
+            column_mean = torch.zeros_like(self._sum).index_add_(0, self.column_term, column_mean)
+        self.last_mean = column_mean
         self._sum += self.last_mean
         self._count += 1
         return weighted
