@@ -33,7 +33,7 @@ from fallkit.config import validate
 from fallkit.env.build import make_env
 from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.rl.models import joint_prior, make_actor, make_critic, resolve_precision
-from fallkit.rl.ppo import PPO, value_heads
+from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.trainer import collect
 from fallkit.robots import robot_spec
 from fallkit.sim import make_sim, sim_options
@@ -75,8 +75,9 @@ def measure(args, envs: int) -> dict:
     act_dim = env.action_spec.shape[-1]
     prior = joint_prior(config, spec)
     actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, precision=precision).to(device)
-    heads = len(value_heads(env.rewards, tc.ppo)[0]) if tc.ppo.value_per_term else 1  # as the trainer builds its critic
-    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, heads).to(device)
+    heads, weight_columns = critic_heads(config, spec, env.rewards)  # as the trainer builds its critic
+    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns)
+    critic = critic.to(device)
     ppo = PPO(actor, critic, tc.ppo, rewards=env.rewards)
     td = env.reset()
 
@@ -130,7 +131,8 @@ def measure(args, envs: int) -> dict:
         batch_size=shape, device=device,
     )  # fmt: skip
     actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
-    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, heads).to(device)
+    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns)
+    critic2 = critic2.to(device)
     ppo2 = PPO(actor2, critic2, tc.ppo, rewards=env.rewards)
     torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())

@@ -50,11 +50,12 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
-from fallkit.config import PPOConfig
+from fallkit.config import FallkitConfig, PPOConfig
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
-from fallkit.rl.models import GaussianPolicyNet, RunningNorm, policy_net, value_net
+from fallkit.rl.models import GaussianPolicyNet, RunningNorm, impact_weight_columns, policy_net, value_net
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
+from fallkit.robots.spec import RobotSpec
 
 
 def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:
@@ -80,6 +81,17 @@ def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Te
     if cfg.value_per_component:
         return list(rewards.columns), None
     return list(rewards.names), rewards.column_term
+
+
+def critic_heads(config: FallkitConfig, spec: RobotSpec, rewards: RewardSum) -> tuple[list[str], list[int] | None]:
+    """The critic's value heads as training builds them: their names (one per reward term or column with
+    value_per_term, else one) and, for a critic that observes the sensitivity weights, each head's ln w_c
+    column (ValueNet.weight_columns; None when no head is scaled)."""
+    ppo = config.train.ppo
+    heads = value_heads(rewards, ppo)[0] if ppo.value_per_term else ["value"]
+    if not (ppo.value_per_component and config.env.sensitivity_inputs.enabled):
+        return heads, None
+    return heads, impact_weight_columns(spec, heads, config.env.observe_gravity)
 
 
 def mirror_error(mirror: ObservationMirror, loc: torch.Tensor, mirrored_loc: torch.Tensor) -> torch.Tensor:

@@ -35,17 +35,9 @@ from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
-from fallkit.rl.models import (
-    impact_weight_columns,
-    joint_prior,
-    make_actor,
-    make_critic,
-    policy_net,
-    resolve_precision,
-    value_net,
-)
+from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
-from fallkit.rl.ppo import PPO, distributed, merge_over_ranks, value_heads
+from fallkit.rl.ppo import PPO, critic_heads, distributed, merge_over_ranks
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -82,10 +74,7 @@ class Trainer:
         self.actor = make_actor(
             obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
-        heads = value_heads(self.env.rewards, tc.ppo)[0] if tc.ppo.value_per_term else ["value"]  # per term, or one
-        weight_columns = None  # a component's impact head of a critic that observes the weights: scaled by w_c²
-        if tc.ppo.value_per_component and config.env.sensitivity_inputs.enabled:
-            weight_columns = impact_weight_columns(self.spec, heads, config.env.observe_gravity)
+        heads, weight_columns = critic_heads(config, self.spec, self.env.rewards)
         self.critic = make_critic(
             critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
         )

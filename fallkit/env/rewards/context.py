@@ -85,6 +85,7 @@ class RewardSum:
         ]
         self.num_components = len(components or [])
         self.split = [components is not None and hasattr(fn, "by_component") for fn in self.functions]
+        self.any_split = any(self.split)
         self.columns: list[str] = []
         column_term: list[int] = []
         for k, (name, split) in enumerate(zip(self.names, self.split)):
@@ -114,7 +115,7 @@ class RewardSum:
         ]
         weighted = torch.column_stack(parts) * self.scale  # a [N] term is one column, an [N, C] one C columns
         column_mean = weighted.mean(dim=0)
-        if any(self.split):  # the split terms' columns summed back into their term
+        if self.any_split:  # the split terms' columns summed back into their term
             column_mean = torch.zeros_like(self._sum).index_add_(0, self.column_term, column_mean)
         self.last_mean = column_mean
         self._sum += self.last_mean
