@@ -45,14 +45,15 @@ def test_same_seed_same_iterations_bit_for_bit(tmp_path):
     assert any(not torch.equal(actor_of(a)[k], actor_of(c)[k]) for k in actor_of(a))  # the seed matters
 
 
-def test_resume_continues_exactly(tmp_path):
-    straight = train(tmp_path / "straight", "train.iterations=4", "train.checkpoint_every=2")
+@pytest.mark.parametrize("noise", [[], ["train.noise_correlation_time=0.1"]], ids=["white", "correlated"])
+def test_resume_continues_exactly(tmp_path, noise):
+    straight = train(tmp_path / "straight", "train.iterations=4", "train.checkpoint_every=2", *noise)
     assert (tmp_path / "straight" / "checkpoints" / "iter_000002.pt").is_file()
     assert (tmp_path / "straight" / "metrics.csv").read_text().count("\n") == 5  # header + 4 iterations
     half = tmp_path / "half"
     (half / "checkpoints").mkdir(parents=True)
     shutil.copy(tmp_path / "straight" / "checkpoints" / "iter_000002.pt", half / "checkpoints" / "last.pt")
-    resumed = train(tmp_path / "resumed", "train.iterations=4", f"resume={half}")
+    resumed = train(tmp_path / "resumed", "train.iterations=4", f"resume={half}", *noise)
     assert load_checkpoint(resumed)["iteration"] == 4
     assert_same_weights(actor_of(straight), actor_of(resumed))
 

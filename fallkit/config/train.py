@@ -112,6 +112,13 @@ class TrainConfig(Section):
         "this floor f: where the mean is the prior's alone the noise teaches nothing and only shakes the landing the "
         "orientation and joint terms judge (null: the same std throughout; needs train.fade_residual)",
     )
+    noise_correlation_time: float = Field(
+        0.0,
+        ge=0,
+        description="[s] the exploration noise is correlated in time over about this long (an AR(1) process per "
+        "world, fallkit.rl.exploration): a push held for a few tenths of a second can steer a fall where "
+        "independent draws at every step average out; each step's action stays N(loc, scale). 0: white noise",
+    )
     precision: Literal["auto", "float32", "bfloat16"] = Field(
         "auto",
         description="arithmetic of the networks' matrix products (fallkit.rl.models.run_mlp): bfloat16 runs them "

@@ -129,6 +129,10 @@ class FallEnv(EnvBase):
         """The current world-frame target θ̂_t [N, 4]: the end pose's tilt turned to the robot's heading."""
         return path_frame(self.sim.state.root_quat).turn(self.goal_root_quat)
 
+    def episode_starts(self) -> torch.Tensor:
+        """[N] bool: the worlds whose next action is the first of their episode."""
+        return self.step_count == 0
+
     def tracking_blend(self) -> torch.Tensor:
         """u(t) [N] of every world at its current step: 0 when the fall begins, 1 after T_blend."""
         return blend(self.step_count * self.dt, self.reward_cfg.blend_time)

@@ -35,6 +35,7 @@ from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
+from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads, distributed, merge_over_ranks
@@ -90,6 +91,9 @@ class Trainer:
             self.env.rewards,
         )  # fmt: skip
         self.shuffle = torch.Generator().manual_seed(seed)
+        self.noise = CorrelatedNoise(
+            self.env.num_envs, act_dim, tc.noise_correlation_time, self.env.dt, self.env.device
+        ) if tc.noise_correlation_time > 0 else None  # fmt: skip
         self.iteration, self.start = 0, 0
         self.td: TensorDict | None = None  # the next collection's input
         self.impacts = EpisodeImpacts(self.env)
@@ -140,7 +144,7 @@ class Trainer:
         """num_steps policy steps in every env: the [num_envs, num_steps] batch."""
         if self.td is None:  # a new run (a resumed one continues from its checkpoint's observation)
             self.td = self._first_observation()
-        batch, self.td = collect(self.env, self.actor, self.td, self.config.train.num_steps)
+        batch, self.td = collect(self.env, self.actor, self.td, self.config.train.num_steps, self.noise)
         self.impacts.add(batch)
         return batch
 
@@ -194,6 +198,7 @@ class Trainer:
             "env": self.env.run_state(),
             "observation": self.td.clone(),  # the next collection starts from it, noise included
             "rng": {"torch": torch.get_rng_state(), "shuffle": self.shuffle.get_state()},
+            "noise": self.noise.state_dict() if self.noise is not None else None,
         }
 
     def load_state_dict(self, ckpt: dict[str, Any]) -> None:
@@ -219,6 +224,8 @@ class Trainer:
             raise ConfigError(f"resume: {exc}") from None
         torch.set_rng_state(ckpt["rng"]["torch"])
         self.shuffle.set_state(ckpt["rng"]["shuffle"])
+        if self.noise is not None and ckpt.get("noise") is not None:  # else: a fresh stationary draw
+            self.noise.load_state_dict(ckpt["noise"])
         self.iteration = int(ckpt["iteration"])
         self.td = ckpt["observation"].to(self.env.device)
 
@@ -271,15 +278,20 @@ class EpisodeImpacts:
         return {"episode/max_impact_force": mean, "episode/count": float(len(impacts))}
 
 
-def collect(env: FallEnv, actor, td: TensorDict, num_steps: int) -> tuple[TensorDict, TensorDict]:
+def collect(
+    env: FallEnv, actor, td: TensorDict, num_steps: int, noise: CorrelatedNoise | None = None
+) -> tuple[TensorDict, TensorDict]:
     """num_steps policy steps in every env: the [num_envs, num_steps] batch and the next step's input.
 
     TorchRL's step_and_maybe_reset restarts finished episodes (fresh initial state and end pose).
+    With `noise` the actions explore with noise correlated in time (train.noise_correlation_time).
     """
     steps = []
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         for _ in range(num_steps):
             td = actor(td)
+            if noise is not None:
+                td = noise.act(td, fresh=env.episode_starts())
             td, next_td = env.step_and_maybe_reset(td)
             steps.append(td)
             td = next_td
