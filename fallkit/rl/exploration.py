@@ -36,7 +36,7 @@ class CorrelatedNoise:
         return self.eps
 
     def act(self, td: TensorDict, fresh: torch.Tensor) -> TensorDict:
-        """Replace the actor's white-noise sample by loc + scale·ε, with its log-probability."""
+        """The action loc + scale·ε and its log-probability, from the actor's "loc" and "scale" in `td`."""
         loc, scale = td["loc"], td["scale"]
         action = torch.addcmul(loc, scale, self.step(fresh))
         td.set("action", action)

@@ -289,8 +289,10 @@ def collect(
     steps = []
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         for _ in range(num_steps):
-            td = actor(td)
-            if noise is not None:
+            if noise is None:
+                td = actor(td)
+            else:  # loc and scale only (get_dist draws nothing); the noise draws the action
+                actor.get_dist(td)
                 td = noise.act(td, fresh=env.episode_starts())
             td, next_td = env.step_and_maybe_reset(td)
             steps.append(td)
