@@ -63,6 +63,12 @@ class PPOConfig(Section):
         "head learns a simpler function than the whole return (fallkit.rl.ppo; measured on three seeds, "
         "docs/training.md); false: one value for the whole return (the paper)",
     )
+    term_lam: dict[str, float] = Field(
+        default_factory=dict,
+        description="with value_per_term: a GAE λ of its own for some reward terms (`+train.ppo.term_lam.orientation="
+        "0.99`), the others keep `lam`; a term paid late (orientation, blended in by u(t)) can credit the actions "
+        "that decided it further back without the impact term's advantages paying that variance; {} = `lam` for all",
+    )
     value_per_component: bool = Field(
         False,
         description="with value_per_term: the impact term's value split further, one head per robot component (its "
@@ -75,6 +81,12 @@ class PPOConfig(Section):
     def _per_component_needs_per_term(self) -> PPOConfig:
         if self.value_per_component and not self.value_per_term:
             raise ValueError("train.ppo.value_per_component=true needs train.ppo.value_per_term=true (a value per term)")
+        if self.term_lam and not self.value_per_term:
+            raise ValueError("train.ppo.term_lam needs train.ppo.value_per_term=true (a λ per term, a value per term)")
+        bad = {k: v for k, v in self.term_lam.items() if not 0.0 <= v <= 1.0}
+        if bad:
+            name, v = next(iter(bad.items()))
+            raise ValueError(f"train.ppo.term_lam.{name}={v}: a GAE λ lies in [0, 1]")
         return self
 
 

@@ -33,6 +33,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
      The env reports the impact term per component (RewardSum.columns); those columns are summed
      into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
+     `term_lam` gives some terms a GAE λ of their own (`head_lambdas`), e.g. the orientation term,
+     paid late, a longer credit horizon than the impact's.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -53,6 +55,7 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 from fallkit.config import FallkitConfig, PPOConfig
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
+from fallkit.errors import ConfigError
 from fallkit.rl.models import GaussianPolicyNet, RunningNorm, impact_weight_columns, policy_net, value_net
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 from fallkit.robots.spec import RobotSpec
@@ -81,6 +84,20 @@ def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Te
     if cfg.value_per_component:
         return list(rewards.columns), None
     return list(rewards.names), rewards.column_term
+
+
+def head_lambdas(heads: list[str], cfg: PPOConfig) -> torch.Tensor | None:
+    """The GAE λ of every value head [K] (a head "impact/head" is the impact term's), or None when all use `lam`."""
+    if not cfg.term_lam:
+        return None
+    terms = {head.split("/")[0] for head in heads}
+    unknown = sorted(set(cfg.term_lam) - terms)
+    if unknown:
+        raise ConfigError(
+            f"train.ppo.term_lam: {', '.join(unknown)} is not a reward term of this run; "
+            f"the terms: {', '.join(sorted(terms))}"
+        )
+    return torch.tensor([cfg.term_lam.get(head.split("/")[0], cfg.lam) for head in heads])
 
 
 def critic_heads(config: FallkitConfig, spec: RobotSpec, rewards: RewardSum) -> tuple[list[str], list[int] | None]:
@@ -136,6 +153,7 @@ class PPO:
         # with value_per_term: what each value head learns (names for the logs), and which head each of
         # the env's reward columns adds to (None: one head per column)
         self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
+        self.head_lam = head_lambdas(self.term_names, cfg) if cfg.value_per_term else None
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
@@ -250,9 +268,11 @@ class PPO:
             column = self.term_names.index("orientation") if "orientation" in self.term_names else 0
             terms = terms.clone()
             terms[..., column] += shaping.squeeze(-1)
+        if self.head_lam is not None:
+            self.head_lam = self.head_lam.to(terms)  # once onto the batch's device
         advantages, targets = vec_generalized_advantage_estimate(
             self.cfg.gamma,
-            self.cfg.lam,
+            self.cfg.lam if self.head_lam is None else self.head_lam,  # a [K] λ broadcasts over the heads
             batch[keys.value],
             batch["next", keys.value],
             terms,
