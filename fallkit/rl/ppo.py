@@ -153,7 +153,7 @@ class PPO:
         # with value_per_term: what each value head learns (names for the logs), and which head each of
         # the env's reward columns adds to (None: one head per column)
         self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
-        self.head_lam = head_lambdas(self.term_names, cfg) if cfg.value_per_term else None
+        self.head_lam = head_lambdas(self.term_names, cfg)  # None: every head uses lam
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
