@@ -131,7 +131,8 @@ def test_a_fall_clicked_in_the_browser_is_drawn_and_scored_as_mode_eval_scores_i
             page.get_by_role("option", name=pose_name).click()
             page.get_by_role("button", name="Random fall").click()
             status = page.locator("#fallkit-status")
-            # the page answers while a fall runs (at 0.1x: 15 s, room for a slow machine): pause it, nothing ends; full speed, go on
+            # the page answers while a fall runs (at 0.1x: 15 s, room for a slow machine): pause it, nothing
+            # ends; full speed, go on
             page.wait_for_selector("#fallkit-status[data-state='running']", timeout=60_000)
             page.wait_for_timeout(500)
             page.get_by_label("pause", exact=True).click()

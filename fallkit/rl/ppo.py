@@ -86,18 +86,17 @@ def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Te
     return list(rewards.names), rewards.column_term
 
 
-def head_lambdas(heads: list[str], cfg: PPOConfig) -> torch.Tensor | None:
-    """The GAE λ of every value head [K] (a head "impact/head" is the impact term's), or None when all use `lam`."""
+def head_lambdas(head_terms: list[str], cfg: PPOConfig) -> torch.Tensor | None:
+    """The GAE λ of every value head [K], given the reward term of each head; None when all use `lam`."""
     if not cfg.term_lam:
         return None
-    terms = {head.split("/")[0] for head in heads}
-    unknown = sorted(set(cfg.term_lam) - terms)
+    unknown = sorted(set(cfg.term_lam) - set(head_terms))
     if unknown:
         raise ConfigError(
             f"train.ppo.term_lam: {', '.join(unknown)} is not a reward term of this run; "
-            f"the terms: {', '.join(sorted(terms))}"
+            f"the terms: {', '.join(sorted(set(head_terms)))}"
         )
-    return torch.tensor([cfg.term_lam.get(head.split("/")[0], cfg.lam) for head in heads])
+    return torch.tensor([cfg.term_lam.get(term, cfg.lam) for term in head_terms])
 
 
 def critic_heads(config: FallkitConfig, spec: RobotSpec, rewards: RewardSum) -> tuple[list[str], list[int] | None]:
@@ -153,7 +152,10 @@ class PPO:
         # with value_per_term: what each value head learns (names for the logs), and which head each of
         # the env's reward columns adds to (None: one head per column)
         self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
-        self.head_lam = head_lambdas(self.term_names, cfg)  # None: every head uses lam
+        head_terms = self.term_names  # each head's reward term: a head per component is its impact term's
+        if rewards is not None and cfg.value_per_component:
+            head_terms = [rewards.names[k] for k in rewards.column_term.tolist()]
+        self.head_lam = head_lambdas(head_terms, cfg)  # None: every head uses lam
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
