@@ -88,6 +88,16 @@ class FallkitConfig(Section):
         return self
 
     @model_validator(mode="after")
+    def _relabel_needs_drawn_weights(self) -> "FallkitConfig":
+        inputs = self.env.sensitivity_inputs
+        if self.train.ppo.relabel_sensitivity and not (inputs.enabled and inputs.low < inputs.high):
+            raise ValueError(
+                "train.ppo.relabel_sensitivity prices the collected falls under other sensitivity weights, which "
+                "the policy must observe: set env.sensitivity_inputs.enabled=true (with low < high)"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _blend_within_the_episode(self) -> "FallkitConfig":
         if self.reward.blend_time > self.env.episode_length:
             raise ValueError(

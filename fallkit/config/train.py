@@ -56,6 +56,13 @@ class PPOConfig(Section):
         "observations and actions, same advantage; fallkit.env.mirror). Only for robots whose derived mirror map "
         "exists (RobotSpec.mirror_map); off until a paired learning run shows it pays (docs/training.md)",
     )
+    relabel_sensitivity: bool = Field(
+        False,
+        description="with env.sensitivity_inputs: every minibatch also trains on its samples under other drawn "
+        "weights, the impact repriced by (w'/w)² per component (the weights only price the forces, so the falls "
+        "are the same; fallkit.rl.relabel), so each sample contrasts two weightings of its action; off until a "
+        "paired run shows it pays (docs/sensitivity_inputs.md)",
+    )
     value_per_term: bool = Field(
         True,
         description="a decomposed critic: one value head per reward term (impact, orientation, ...), each fitted to "

@@ -35,6 +35,12 @@ One call of `PPO.update(batch)` is one iteration's learning:
      into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
      `term_lam` gives some terms a GAE λ of their own (`head_lambdas`), e.g. the orientation term,
      paid late, a longer credit horizon than the impact's.
+  8. With `relabel` (train.ppo.relabel_sensitivity, a policy that observes its sensitivity weights),
+     the batch is copied under newly drawn weights, its impact repriced (fallkit.rl.relabel), GAE
+     runs on the copy too, and each minibatch is extended by the copy's rows of the same samples:
+     the same actions priced under two weightings. The copy keeps the collecting log-probability
+     (its ratio is the importance weight of an action drawn at the other weights); the KL stays on
+     the collected samples, as with the mirror, which then mirrors both.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -46,7 +52,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.distributed as dist
 from tensordict import TensorDict
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
@@ -56,7 +61,9 @@ from fallkit.config import FallkitConfig, PPOConfig
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
 from fallkit.errors import ConfigError
-from fallkit.rl.models import GaussianPolicyNet, RunningNorm, impact_weight_columns, policy_net, value_net
+from fallkit.rl.models import GaussianPolicyNet, impact_weight_columns, policy_net, value_net
+from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
+from fallkit.rl.relabel import SensitivityRelabel
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 from fallkit.robots.spec import RobotSpec
 
@@ -141,14 +148,18 @@ class PPO:
         mirror: ObservationMirror | None = None,
         potential: OrientationPotential | None = None,
         rewards: RewardSum | None = None,
+        relabel: SensitivityRelabel | None = None,
     ):
         if cfg.mirror and mirror is None:
             raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
+        if cfg.relabel_sensitivity and relabel is None:
+            raise ValueError("PPO: train.ppo.relabel_sensitivity needs a SensitivityRelabel (fallkit.rl.relabel)")
         if cfg.value_per_term and rewards is None:
             raise ValueError("PPO: train.ppo.value_per_term needs the env's reward terms (rewards=env.rewards)")
         self.cfg = cfg
         self.mirror = mirror if cfg.mirror else None
         self.potential = potential
+        self.relabel = relabel if cfg.relabel_sensitivity else None
         # with value_per_term: what each value head learns (names for the logs), and which head each of
         # the env's reward columns adds to (None: one head per column)
         self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
@@ -187,14 +198,8 @@ class PPO:
     def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, float]:
         """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures."""
         cfg = self.cfg
-        advantage_stats = self._advantages(batch)
         critic_net = value_net(self.critic)
-        if critic_net.target is not None:
-            critic_net.update_target_statistics(batch[self.loss.tensor_keys.value_target], merge=merge_over_ranks)
-        # each minibatch gathers only what the loss and the KL read (the whole batch: 8 % of an update)
-        keys = self.loss.tensor_keys
-        read = ["policy", "critic", "loc", "scale", keys.action, keys.sample_log_prob, keys.advantage, keys.value_target]
-        flat = batch.select(*read, keys.value, strict=False).reshape(-1)
+        flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
         n = flat.shape[0]
         mb = n // cfg.num_minibatches
         names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction"]
@@ -206,17 +211,16 @@ class PPO:
         for _ in range(cfg.epochs):
             perm = torch.randperm(n, generator=generator, device="cpu").to(flat.device)
             for k in range(cfg.num_minibatches):
-                data = flat[perm[k * mb : (k + 1) * mb]]
-                old_loc, old_scale = data["loc"], data["scale"]  # the collecting policy's
-                if self.mirror is not None:
-                    data = self._with_mirror_image(data)
+                rows = perm[k * mb : (k + 1) * mb]
+                data, unmirrored = self._minibatch(flat, flat_image, rows)
+                old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
                 out = self.loss(data)
                 loss, loss_critic = _total_loss(out, critic_net)
                 # KL of this minibatch between the collecting policy and the current one, from the
-                # loss's forward pass (the collected samples only, even with the mirror: only they
-                # were drawn from the collecting policy), before this minibatch's step
+                # loss's forward pass (the collected samples only, even with the mirror or the relabelled
+                # copy: only they were drawn from the collecting policy at their inputs), before this step
                 loc, scale = self.actor_outputs.loc[:mb], self.actor_outputs.scale[:mb]
-                kl = _mean_over_ranks(gaussian_kl(old_loc, old_scale, loc, scale))
+                kl = mean_over_ranks(gaussian_kl(old_loc, old_scale, loc, scale))
                 self.learning_rate = adapt_learning_rate(self.learning_rate, kl.item(), cfg)
                 actor_group, critic_group = self.optimizer.param_groups
                 actor_group["lr"] = self.learning_rate
@@ -224,7 +228,7 @@ class PPO:
 
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
-                _average_gradients(self.params)
+                average_gradients(self.params)
                 grad_norms += self._group_grad_norms()
                 torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.optimizer.step()
@@ -237,12 +241,47 @@ class PPO:
                     out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
                 ]
                 if self.mirror is not None:
-                    figures.append(mirror_error(self.mirror, loc, self.actor_outputs.loc[mb:]))
+                    outputs = self.actor_outputs.loc
+                    figures.append(mirror_error(self.mirror, outputs[:unmirrored], outputs[unmirrored:]))
                 sums += torch.stack([f.detach().to(sums) for f in figures])
                 count += 1
         stats = dict(zip(names, (sums / count).tolist())) | advantage_stats
         stats["actor_grad_norm"], stats["critic_grad_norm"] = (grad_norms / count).tolist()
         return stats | self._state_stats(policy_net(self.actor), critic_net)
+
+    def _learning_samples(
+        self, batch: TensorDict, critic_net, generator: torch.Generator | None
+    ) -> tuple[TensorDict, TensorDict | None, dict[str, float]]:
+        """The batch's samples with advantages and value targets, flat, holding only what the loss and
+        the KL read (gathering the whole batch per minibatch was 8 % of an update); the same for its
+        copy under other sensitivity weights (train.ppo.relabel_sensitivity; else None); the
+        advantages' spread per term. The value targets join the critic's target statistics first."""
+        keys = self.loss.tensor_keys
+        advantage_stats = self._advantages(batch)
+        image = None
+        if self.relabel is not None:
+            image = self.relabel(batch, generator)
+            self._advantages(image)
+        if critic_net.target is not None:
+            targets = batch[keys.value_target]
+            if image is not None:
+                targets = torch.cat([targets, image[keys.value_target]])
+            critic_net.update_target_statistics(targets, merge=merge_over_ranks)
+        read = ["policy", "critic", "loc", "scale", keys.action, keys.sample_log_prob, keys.advantage, keys.value_target]
+        flat = batch.select(*read, keys.value, strict=False).reshape(-1)
+        flat_image = image.select(*read, keys.value, strict=False).reshape(-1) if image is not None else None
+        return flat, flat_image, advantage_stats
+
+    def _minibatch(self, flat: TensorDict, flat_image: TensorDict | None, rows: torch.Tensor) -> tuple[TensorDict, int]:
+        """The samples `rows`, then their relabelled copies (if any), then the mirror image of both (if
+        any); and how many rows come before the mirror image."""
+        data = flat[rows]
+        if flat_image is not None:
+            data = torch.cat([data, flat_image[rows]], dim=0)
+        unmirrored = data.shape[0]
+        if self.mirror is not None:
+            data = self._with_mirror_image(data)
+        return data, unmirrored
 
     @torch.no_grad()
     def _advantages(self, batch: TensorDict) -> dict[str, float]:
@@ -343,42 +382,3 @@ def _total_loss(out: TensorDict, critic_net) -> tuple[torch.Tensor, torch.Tensor
     if "loss_entropy" in out.keys():
         loss = loss + out["loss_entropy"].mean()
     return loss, loss_critic
-
-
-def distributed() -> bool:
-    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
-
-
-def _average_gradients(params: list[torch.Tensor]) -> None:
-    if not distributed():
-        return
-    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
-    flat = torch.cat([g.reshape(-1) for g in grads])
-    dist.all_reduce(flat, op=dist.ReduceOp.SUM)
-    flat /= dist.get_world_size()
-    offset = 0
-    for p, g in zip(params, grads):
-        size = g.numel()
-        if p.grad is None:
-            p.grad = g
-        p.grad.copy_(flat[offset : offset + size].view_as(g))
-        offset += size
-
-
-def merge_over_ranks(norm: RunningNorm) -> None:
-    """Average running statistics over the ranks, so every rank normalises alike (no-op on one process)."""
-    if not distributed():
-        return
-    stats = torch.cat([norm.mean, norm.var, norm.count.reshape(1)])
-    dist.all_reduce(stats)
-    stats /= dist.get_world_size()
-    d = norm.mean.numel()
-    norm.merge_(stats[:d], stats[d : 2 * d], stats[2 * d])
-
-
-def _mean_over_ranks(x: torch.Tensor) -> torch.Tensor:
-    if not distributed():
-        return x
-    x = x.clone()
-    dist.all_reduce(x, op=dist.ReduceOp.SUM)
-    return x / dist.get_world_size()

@@ -38,7 +38,9 @@ from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_chec
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
-from fallkit.rl.ppo import PPO, critic_heads, distributed, merge_over_ranks
+from fallkit.rl.ppo import PPO, critic_heads
+from fallkit.rl.ranks import distributed, merge_over_ranks
+from fallkit.rl.relabel import SensitivityRelabel
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -83,13 +85,7 @@ class Trainer:
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
-        potential = OrientationPotential(
-            self.spec, tc.ppo.orientation_potential, config.env.sensitivity_inputs.enabled, config.env.observe_gravity
-        ) if tc.ppo.orientation_potential > 0 else None
-        self.ppo = PPO(
-            self.actor, self.critic, tc.ppo, mirror.to(self.env.device) if mirror else None, potential,
-            self.env.rewards,
-        )  # fmt: skip
+        self.ppo = self._make_ppo(mirror)
         self.shuffle = torch.Generator().manual_seed(seed)
         self.noise = CorrelatedNoise(
             self.env.num_envs, act_dim, tc.noise_correlation_time, self.env.dt, self.env.device
@@ -106,6 +102,17 @@ class Trainer:
             self.resumed_from = checkpoint_run_dir(ckpt["path"])
             if self.main_rank:
                 print(f"resumed from {ckpt['path']} at iteration {self.iteration}; training to {tc.iterations}")
+
+    def _make_ppo(self, mirror: ObservationMirror | None) -> PPO:
+        """PPO over this run's actor and critic, with the learning aids the config switches on."""
+        config, ppo = self.config, self.config.train.ppo
+        sensitivity, gravity = config.env.sensitivity_inputs, config.env.observe_gravity
+        potential = OrientationPotential(
+            self.spec, ppo.orientation_potential, sensitivity.enabled, gravity
+        ) if ppo.orientation_potential > 0 else None  # fmt: skip
+        relabel = SensitivityRelabel(self.spec, sensitivity, self.env.rewards, gravity) if ppo.relabel_sensitivity else None
+        mirror = mirror.to(self.env.device) if mirror else None
+        return PPO(self.actor, self.critic, ppo, mirror, potential, self.env.rewards, relabel)
 
     @property
     def main_rank(self) -> bool:

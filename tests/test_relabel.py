@@ -1,0 +1,91 @@
+"""Hindsight sensitivity weights (train.ppo.relabel_sensitivity): a collected fall, priced under other
+weights, is the fall the simulator gives under those weights; PPO trains on both."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from helpers import TINY, composed_config
+
+from fallkit.config import ConfigError, EnvConfig, RewardConfig
+from fallkit.env.fall_env import FallEnv
+from fallkit.env.observations import actor_slices
+from fallkit.env.rewards.context import RewardSum
+from fallkit.poses.end_pose_set import random_end_poses
+from fallkit.rl.relabel import SensitivityRelabel
+from fallkit.sim import make_sim
+
+INPUTS = EnvConfig(noise={"scale": 0.0}, disturbances={"enabled": False}, sensitivity_inputs={"enabled": True})
+ON = ["env.sensitivity_inputs.enabled=true", "train.ppo.relabel_sensitivity=true"]
+
+
+def _held_fall(spec, sensitivity: torch.Tensor | None = None, steps: int = 40):
+    """8 worlds (seed 0) falling for 0.8 s with their joints held, in one episode: the [8, steps] batch.
+    `sensitivity` [8, C] replaces the drawn weights after the reset (the physics does not read them)."""
+    poses = random_end_poses(spec, 16, torch.Generator().manual_seed(0))
+    env = FallEnv(spec, INPUTS, RewardConfig(), poses, make_sim(spec, 8, "mujoco", body_state=True), seed=0)
+    td = env.reset()
+    if sensitivity is not None:
+        env.sensitivity[:] = sensitivity
+    hold = env.action_for_setpoint(env.sim.state.joint_pos.clone())
+    return env, env.rollout(steps, lambda td: td.set("action", hold), auto_reset=False, tensordict=td)
+
+
+def test_a_relabelled_fall_is_the_fall_the_simulator_gives_under_the_drawn_weights(biped):
+    env, batch = _held_fall(biped)
+    relabel = SensitivityRelabel(biped, INPUTS.sensitivity_inputs, env.rewards)
+    image = relabel(batch, torch.Generator().manual_seed(1))
+    cols = actor_slices(biped, sensitivity=True)["sensitivity"]
+    drawn = image["policy"][:, 0, cols].exp()  # [8, C]: one draw per world for its whole rollout
+    assert torch.equal(image["policy"][..., cols], drawn.log().unsqueeze(1).expand(-1, 40, -1))
+    assert not torch.allclose(drawn, env.sensitivity)
+    factor = drawn / torch.as_tensor(biped.sensitivity)
+    assert factor.min() >= 0.2 - 1e-6 and factor.max() <= 5.0 + 1e-6  # drawn as the env draws them
+    for key in ("policy", "critic", ("next", "critic")):  # only the weights' columns change
+        other = torch.ones(image[key].shape[-1], dtype=torch.bool)
+        other[cols] = False
+        assert torch.equal(image[key][..., other], batch[key][..., other])
+        assert torch.equal(image[key][..., cols], image["policy"][..., cols])
+    assert torch.equal(image["action"], batch["action"])
+    # the same fall with those weights from the start: the simulator's reward terms are the copy's
+    _, replay = _held_fall(biped, sensitivity=drawn)
+    terms = image["next", "reward_terms"]
+    impact = terms[..., : len(biped.components)]
+    assert impact.sum() < -1e-3 and not torch.allclose(impact, batch["next", "reward_terms"][..., : impact.shape[-1]])
+    torch.testing.assert_close(terms, replay["next", "reward_terms"], rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(image["next", "reward"], replay["next", "reward"], rtol=1e-4, atol=1e-6)
+    assert image["next", "reward_terms"] is not batch["next", "reward_terms"]  # the batch itself is unchanged
+    torch.testing.assert_close(batch["next", "reward_terms"].sum(-1, keepdim=True), batch["next", "reward"])
+
+
+def test_relabelling_needs_drawn_weights_and_the_built_in_impact(biped):
+    with pytest.raises(ConfigError, match="set env.sensitivity_inputs.enabled=true"):
+        composed_config("train.ppo.relabel_sensitivity=true")
+    with pytest.raises(ConfigError, match="with low < high"):
+        composed_config(*ON, "env.sensitivity_inputs.low=1.0", "env.sensitivity_inputs.high=1.0")
+    no_impact = RewardSum(RewardConfig(impact=0.0), 0.02, components=biped.component_names)
+    with pytest.raises(ConfigError, match="has no such term"):
+        SensitivityRelabel(biped, INPUTS.sensitivity_inputs, no_impact)
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_training_relabels_every_minibatch_and_resumes(tmp_path, mirror):
+    """Each minibatch holds the collected rows, then their relabelled copies (then the mirror image of
+    both): the loss's actor pass sees 2x (4x) the rows."""
+    from fallkit.rl.ppo import policy_net
+    from fallkit.rl.trainer import Trainer
+
+    extra = ["train.ppo.mirror=true"] if mirror else []
+    trainer = Trainer(composed_config(*TINY, *ON, *extra, "train.iterations=2"), tmp_path / "run")
+    rows = []
+    policy_net(trainer.ppo.loss.actor_network).register_forward_hook(lambda m, i, o: rows.append(o[0].shape[0]))
+    last = trainer.run()
+    mb = 8 * 4 // 2  # TINY: 8 envs x 4 steps in 2 minibatches
+    assert set(rows) == {8, mb * (4 if mirror else 2)}  # collection's 8 worlds; the loss's minibatches
+    header, *lines = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
+    row = dict(zip(header.split(","), lines[-1].split(",")))
+    assert 0.0 <= float(row["kl"]) < 1.0 and float(row["loss_critic"]) > 0.0
+    if mirror:
+        assert float(row["mirror_loss"]) >= 0.0
+    resumed = Trainer(composed_config(*TINY, *ON, *extra, "train.iterations=3", f"resume={last}"), tmp_path / "run2")
+    assert resumed.ppo.relabel is not None and resumed.run().exists()
