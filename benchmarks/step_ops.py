@@ -1,16 +1,21 @@
-"""Tensor operations and host reads per env step of training's collection (issue 15, the CPU proxy).
+"""Tensor operations and host reads of training's iteration (issue 15, the CPU proxy).
 
 On a GPU every tensor operation is (at least) one kernel launch and every host read of a device
-value (`.item()`, `bool(tensor)`, `nonzero`, `.cpu()`) is a sync that stalls the launch queue;
-both are what a CUDA graph removes and what "no host syncs inside the rollout" forbids. On the
-CPU, torch's profiler counts them on the same code: this runs training's own collection loop
-(`fallkit.rl.trainer.collect`: the actor, then TorchRL's step_and_maybe_reset of FallEnv) for a
-few iterations and reports, per env step (one policy step of the whole batch):
+value (`.item()`, `bool(tensor)`, `nonzero`, a tensor used as a size) is a sync that stalls the
+launch queue; both are what a CUDA graph removes and what "no host syncs inside the rollout"
+forbids. On the CPU, torch's profiler counts them on the same code: this runs the trainer's own
+collection (`Trainer.collect`: the actor, TorchRL's step_and_maybe_reset of FallEnv, the episode
+statistics) from the trainer's first, staggered observation, so episodes end and restart as in
+training, and reports per env step (one policy step of the whole batch):
 
   ops_per_step        aten operations called from Python (top-level: what launches kernels)
-  host_reads_per_step aten::_local_scalar_dense and aten::nonzero / aten::item calls (device -> host)
+  host_reads_per_step aten::_local_scalar_dense, nonzero, item and is_nonzero calls (device -> host)
   ms_per_step         wall time of a profiled step, and of an unprofiled one
   top                 the operations called most often, per step
+
+and per iteration, outside the collection: the host reads of the PPO update (`Trainer.learn`) and
+of the logged figures (`Trainer.diagnostics`). The trainer reads those figures once per
+iteration, with one `.tolist()` of them all (not an aten call: not counted).
 
 The simulator's own work (MuJoCo C on the CPU, one CUDA graph with mujoco_warp) is not a torch
 operation and is not counted.
@@ -23,7 +28,6 @@ Prints one JSON object on its last line.
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import time
 
@@ -34,9 +38,8 @@ from torch.profiler import ProfilerActivity, profile
 
 from fallkit.app import register_configs
 from fallkit.config import validate
-from fallkit.rl.trainer import Trainer, collect
-
-HOST_READS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::item", "aten::is_nonzero")
+from fallkit.rl.monitor import HOST_READ_OPS, host_reads, top_level_ops
+from fallkit.rl.trainer import Trainer
 
 
 def main() -> None:
@@ -49,31 +52,34 @@ def main() -> None:
     extra = [o for o in args.overrides if o != "--"]
     register_configs()
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["train=quick", f"sim.num_envs={args.envs}", *extra])
+        cfg = compose(config_name="config", overrides=["train=quick", f"sim.num_envs={args.envs}", f"train.num_steps={args.steps}", *extra]
+        )
     raw = OmegaConf.to_container(cfg, resolve=False)
     raw.pop("hydra", None)
     torch.set_num_threads(1)  # as the trainer collects
     trainer = Trainer(validate(raw), args.out)
     n = args.steps
-    _, td = collect(trainer.env, trainer.actor, trainer.env.reset(), n)  # warm: first resets, allocations
+    trainer.learn(trainer.collect())  # warm: first resets, allocations, the optimizer's state
     t0 = time.perf_counter()
-    _, td = collect(trainer.env, trainer.actor, td, n)
+    batch = trainer.collect()
     plain_ms = (time.perf_counter() - t0) * 1e3 / n
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         t0 = time.perf_counter()
-        collect(trainer.env, trainer.actor, td, n)
+        trainer.collect()
         profiled_ms = (time.perf_counter() - t0) * 1e3 / n
-    counts: collections.Counter[str] = collections.Counter()
-    for event in prof.events():
-        # top-level aten calls only: an op's own sub-ops run inside its kernel on a GPU
-        if event.name.startswith("aten::") and (event.cpu_parent is None or not event.cpu_parent.name.startswith("aten::")):
-            counts[event.name] += 1
-    host = sum(counts[name] for name in HOST_READS)
+    with profile(activities=[ProfilerActivity.CPU]) as update:
+        trainer.learn(batch)
+    with profile(activities=[ProfilerActivity.CPU]) as logging:
+        trainer.diagnostics(batch)
+    counts = top_level_ops(prof)
+    host = sum(counts[name] for name in HOST_READ_OPS)
     report = {
         "envs": args.envs,
         "steps": n,
         "ops_per_step": round(sum(counts.values()) / n, 1),
         "host_reads_per_step": round(host / n, 2),
+        "host_reads_per_update": host_reads(update),
+        "host_reads_logging": host_reads(logging),
         "ms_per_step": round(plain_ms, 2),
         "ms_per_step_profiled": round(profiled_ms, 2),
         "top": {name: round(c / n, 1) for name, c in counts.most_common(15)},

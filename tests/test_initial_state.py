@@ -56,6 +56,17 @@ def test_random_heading_keeps_the_tilt_range(biped, checker):
     assert heading.max() - heading.min() > math.pi  # headings spread around the circle
 
 
+def test_the_written_out_root_rotation_is_the_composed_one_to_the_bit():
+    """`_root_quat` (the per-reset fast path) is Rz(yaw) ⊗ Rx(roll) ⊗ Ry(pitch) exactly as composed."""
+    from fallkit.env.samplers.initial_state import _root_quat
+
+    g = torch.Generator().manual_seed(2)
+    roll, pitch, yaw = ((2.0 * torch.rand(4096, generator=g, dtype=torch.float64) - 1.0) * h for h in (0.6, 0.6, math.pi))
+    zero = torch.zeros_like(yaw)
+    composed = quat_mul(quat_from_euler(zero, zero, yaw), quat_mul(quat_from_euler(roll, zero, zero), quat_from_euler(zero, pitch, zero)))
+    assert torch.equal(_root_quat(roll, pitch, yaw), composed)
+
+
 def test_joint_positions_and_velocities_within_table_ii(biped, upright_yaw, checker):
     qpos, qvel = upright_yaw
     lay = checker.layout

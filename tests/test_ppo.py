@@ -8,17 +8,25 @@ import torch
 from fallkit.config import PPOConfig
 from fallkit.rl.checkpoint import CheckpointError, load_checkpoint, run_checkpoints, save_checkpoint
 from fallkit.rl.models import RunningNorm
-from fallkit.rl.ppo import adapt_learning_rate, gaussian_kl
+from fallkit.rl.optimizer import adapt_learning_rate
+from fallkit.rl.ppo import gaussian_kl
 
 
 def test_adaptive_learning_rate_follows_rsl_rl():
+    """The rule on the device gives what rsl_rl's on Python floats gives, to the bit."""
     cfg = PPOConfig(desired_kl=0.01, lr_min=1e-5, lr_max=1e-2)
-    assert adapt_learning_rate(1e-3, 0.05, cfg) == pytest.approx(1e-3 / 1.5)  # KL > 2 x target: smaller steps
-    assert adapt_learning_rate(1e-3, 0.001, cfg) == pytest.approx(1.5e-3)  # KL < target / 2: larger steps
-    assert adapt_learning_rate(1e-3, 0.01, cfg) == 1e-3  # in between: unchanged
-    assert adapt_learning_rate(1.2e-5, 1.0, cfg) == 1e-5  # floor
-    assert adapt_learning_rate(9e-3, 0.0001, cfg) == 1e-2  # ceiling
-    assert adapt_learning_rate(1e-3, 1.0, PPOConfig(desired_kl=None)) == 1e-3  # fixed rate
+
+    def rule(lr: float, kl: float, c: PPOConfig = cfg) -> float:
+        return adapt_learning_rate(torch.tensor(lr, dtype=torch.float64), torch.tensor(kl), c).item()
+
+    assert rule(1e-3, 0.05) == 1e-3 / 1.5  # KL > 2 x target: smaller steps
+    assert rule(1e-3, 0.001) == 1e-3 * 1.5  # KL < target / 2: larger steps
+    assert rule(1e-3, 0.01) == 1e-3  # in between: unchanged
+    assert rule(1e-3, 0.0) == 1e-3  # no move at all (the first minibatch): unchanged
+    assert rule(1e-3, float("nan")) == 1e-3  # a NaN KL changes nothing
+    assert rule(1.2e-5, 1.0) == 1e-5  # floor
+    assert rule(9e-3, 0.0001) == 1e-2  # ceiling
+    assert rule(1e-3, 1.0, PPOConfig(desired_kl=None)) == 1e-3  # fixed rate
 
 
 def test_gaussian_kl_matches_torch():

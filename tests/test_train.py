@@ -177,6 +177,7 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
     the loss's own forward pass, `_ActorOutputs`, not a second one)."""
     import copy
 
+    from fallkit.rl import optimizer as optimizer_module
     from fallkit.rl import ppo as ppo_module
     from fallkit.rl.models import policy_net
     from fallkit.rl.trainer import Trainer
@@ -186,8 +187,8 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
     trainer.td = trainer.env.reset()
     batch = trainer.collect()
     seen: list[float] = []
-    real = ppo_module.adapt_learning_rate
-    monkeypatch.setattr(ppo_module, "adapt_learning_rate", lambda lr, kl, c: seen.append(kl) or real(lr, kl, c))
+    real = optimizer_module.adapt_learning_rate
+    monkeypatch.setattr(optimizer_module, "adapt_learning_rate", lambda lr, kl, c: seen.append(kl.item()) or real(lr, kl, c))
     actor, critic = copy.deepcopy(trainer.actor), copy.deepcopy(trainer.critic)
     trainer.ppo.update(batch.clone(), generator=torch.Generator().manual_seed(0))
     assert seen[0] == 0.0 and seen[1] > 0.0
@@ -197,3 +198,72 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
         loc, scale = policy_net(actor)(batch["policy"].reshape(-1, batch["policy"].shape[-1]))
         kl = ppo_module.gaussian_kl(batch["loc"].reshape(loc.shape), batch["scale"].reshape(loc.shape), loc, scale)
     assert seen[1] == pytest.approx(kl.item(), rel=1e-4)
+
+
+def _reads_by_fallkit(fn) -> list[str]:
+    """The device-to-host reads (`.item()`, `bool(tensor)`, `nonzero`, a tensor as a size) that fallkit's
+    own code makes while `fn` runs: each op is attributed to the innermost Python frame outside torch."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    found: list[str] = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if any(name in str(func) for name in ("_local_scalar_dense", "nonzero", "item")):
+                frame = sys._getframe(1)
+                while frame is not None and f"{os.sep}torch{os.sep}" in frame.f_code.co_filename:
+                    frame = frame.f_back
+                where = f"{frame.f_code.co_filename}:{frame.f_lineno}" if frame else "?"
+                if f"{os.sep}fallkit{os.sep}" in where:
+                    found.append(f"{func} at {where}")
+            return func(*args, **(kwargs or {}))
+
+    with Reads():
+        fn()
+    return found
+
+
+def test_the_update_and_the_logged_figures_read_nothing_back_per_minibatch(tmp_path):
+    """On a GPU every read of a device value waits for the launch queue. The PPO update (the KL rule
+    included: a tensor learning rate), the episode statistics and the logged figures stay on the
+    device; `Trainer.iterate` reads them once per iteration (one `.tolist()`) and returns floats."""
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config(), tmp_path / "run")
+    trainer.td = trainer._first_observation()  # staggered clocks: episodes end and restart within a batch
+    batch = trainer.collect()
+    assert _reads_by_fallkit(lambda: trainer.learn(batch)) == []
+    assert _reads_by_fallkit(lambda: trainer.diagnostics(batch)) == []
+    stats = trainer.iterate()
+    assert all(isinstance(v, float) for v in stats.values())
+    assert stats["episode/count"] > 0 and stats["episode/max_impact_force"] >= 0.0
+    assert {"kl", "learning_rate", "reward", "reward_terms/impact", "collect_s", "update_s"} <= stats.keys()
+
+
+def test_resume_from_an_optimizer_saved_with_a_float_rate(tmp_path):
+    """Checkpoints saved before the rates were device tensors and Adam fused (a float rate, no `fused`)
+    resume into the tensor rates and continue exactly as the new form does."""
+    import copy
+
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config(), tmp_path / "run")
+    trainer.td = trainer.env.reset()
+    trainer.learn(trainer.collect())
+    state = trainer.ppo.state_dict()
+    old = copy.deepcopy(state)
+    for group in old["optimizer"]["param_groups"]:
+        group.update(lr=float(group["lr"]), fused=None)
+    batch = trainer.collect()
+    weights = []
+    for saved in (state, old):
+        ppo = trainer.ppo
+        actor = copy.deepcopy(trainer.actor.state_dict())
+        critic = copy.deepcopy(trainer.critic.state_dict())
+        ppo.load_state_dict(copy.deepcopy(saved))
+        assert all(isinstance(g["lr"], torch.Tensor) and g["fused"] for g in ppo.optimizer.param_groups)
+        ppo.update(batch.clone(), generator=torch.Generator().manual_seed(0))
+        weights.append(copy.deepcopy(trainer.actor.state_dict()))
+        trainer.actor.load_state_dict(actor)
+        trainer.critic.load_state_dict(critic)
+    assert_same_weights(*weights)

@@ -1,14 +1,36 @@
 """What a training run shows and keeps while it runs: the progress bar, TensorBoard and
-metrics.csv, and a stop flag for SIGINT/SIGTERM (finish the iteration, save, stop)."""
+metrics.csv, and a stop flag for SIGINT/SIGTERM (finish the iteration, save, stop); and
+`host_reads`, the count that says how often the loop waits for the device."""
 
 from __future__ import annotations
 
+import collections
 import csv
 import signal
 import time
 from pathlib import Path
 
 from tqdm import tqdm
+
+# The aten operations by which the host reads a device value (`.item()`, `bool(tensor)`, a mask's
+# `nonzero`, a tensor used as a size): on a GPU each waits for the launch queue to drain.
+HOST_READ_OPS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::item", "aten::is_nonzero")
+
+
+def top_level_ops(prof) -> collections.Counter[str]:
+    """The aten operations a torch profiler saw called from Python (an op's own sub-ops run inside its
+    kernel on a GPU), by name: the CPU proxy for kernel launches (issue 15)."""
+    counts: collections.Counter[str] = collections.Counter()
+    for event in prof.events():
+        if event.name.startswith("aten::") and (event.cpu_parent is None or not event.cpu_parent.name.startswith("aten::")):
+            counts[event.name] += 1
+    return counts
+
+
+def host_reads(prof) -> int:
+    """How many of a profile's top-level operations read a device value back to the host."""
+    counts = top_level_ops(prof)
+    return sum(counts[name] for name in HOST_READ_OPS)
 
 
 class StopFlag:

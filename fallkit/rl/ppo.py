@@ -13,8 +13,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      does: KL > 2·target → lr / 1.5, KL < target / 2 → lr · 1.5, within [lr_min, lr_max].
      The KL reads the policy's outputs from the loss's own forward pass (a forward hook,
      `_ActorOutputs`): the same weights and samples as a second pass would see, at no cost.
-     It is the update's one host read per minibatch (the rule decides on the host); the
-     logged figures stay on the device until the update ends.
+     The rule decides on the device (`fallkit.rl.optimizer`: a tensor rate, fused Adam): the update reads
+     nothing back to the host; its figures are returned as device tensors.
   4. With `normalize_value`, the value targets join the critic's running target statistics
      first (its outputs preserved, `ValueNet.update_target_statistics`) and the value loss is
      taken in those units, so its gradients are O(1) whatever the scale of the returns.
@@ -62,21 +62,11 @@ from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
 from fallkit.errors import ConfigError
 from fallkit.rl.models import GaussianPolicyNet, impact_weight_columns, policy_net, value_net
+from fallkit.rl.optimizer import AdaptiveAdam
 from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
 from fallkit.rl.relabel import SensitivityRelabel
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 from fallkit.robots.spec import RobotSpec
-
-
-def adapt_learning_rate(lr: float, kl: float, cfg: PPOConfig) -> float:
-    """rsl_rl's rule: shrink the step when the policy moved too far, grow it when too little."""
-    if cfg.desired_kl is None:
-        return lr
-    if kl > 2.0 * cfg.desired_kl:
-        return max(cfg.lr_min, lr / 1.5)
-    if 0.0 < kl < cfg.desired_kl / 2.0:
-        return min(cfg.lr_max, lr * 1.5)
-    return lr
 
 
 def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -184,19 +174,16 @@ class PPO:
         if potential is not None:
             self.gae.set_keys(reward=SHAPED_REWARD)
         self.params = [p for p in self.loss.parameters() if p.requires_grad]
-        # Two groups: the actor's rate follows the KL rule; the critic's follows it too unless it has its
-        # own (critic_learning_rate): a KL-bound step is about the policy, and ties the critic to it.
+        # two groups: the actor's rate follows the KL rule, the critic's too unless it has its own
         critic_ids = {id(p) for p in critic.parameters()}
-        actor_params = [p for p in self.params if id(p) not in critic_ids]
-        critic_params = [p for p in self.params if id(p) in critic_ids]
-        self.optimizer = torch.optim.Adam(
-            [{"params": actor_params}, {"params": critic_params}], lr=cfg.learning_rate
+        self.optimizer = AdaptiveAdam(
+            [p for p in self.params if id(p) not in critic_ids], [p for p in self.params if id(p) in critic_ids], cfg
         )
-        self.learning_rate = cfg.learning_rate
         self.actor_outputs = _ActorOutputs(policy_net(self.loss.actor_network))
 
-    def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, float]:
-        """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures."""
+    def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures, each a scalar
+        tensor still on the device (the trainer reads them with the iteration's other figures, at once)."""
         cfg = self.cfg
         critic_net = value_net(self.critic)
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
@@ -208,8 +195,9 @@ class PPO:
         sums = torch.zeros(len(names), device=flat.device)  # read once, after the last minibatch
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
         count = 0
-        for _ in range(cfg.epochs):
-            perm = torch.randperm(n, generator=generator, device="cpu").to(flat.device)
+        # every epoch's shuffle in one copy to the device (a copy waits for the device's queue)
+        perms = torch.stack([torch.randperm(n, generator=generator) for _ in range(cfg.epochs)]).to(flat.device)
+        for perm in perms:
             for k in range(cfg.num_minibatches):
                 rows = perm[k * mb : (k + 1) * mb]
                 data, unmirrored = self._minibatch(flat, flat_image, rows)
@@ -221,12 +209,9 @@ class PPO:
                 # copy: only they were drawn from the collecting policy at their inputs), before this step
                 loc, scale = self.actor_outputs.loc[:mb], self.actor_outputs.scale[:mb]
                 kl = mean_over_ranks(gaussian_kl(old_loc, old_scale, loc, scale))
-                self.learning_rate = adapt_learning_rate(self.learning_rate, kl.item(), cfg)
-                actor_group, critic_group = self.optimizer.param_groups
-                actor_group["lr"] = self.learning_rate
-                critic_group["lr"] = cfg.critic_learning_rate or self.learning_rate
+                self.optimizer.adapt(kl)
 
-                self.optimizer.zero_grad(set_to_none=True)
+                self.optimizer.zero_grad()
                 loss.backward()
                 average_gradients(self.params)
                 grad_norms += self._group_grad_norms()
@@ -245,13 +230,13 @@ class PPO:
                     figures.append(mirror_error(self.mirror, outputs[:unmirrored], outputs[unmirrored:]))
                 sums += torch.stack([f.detach().to(sums) for f in figures])
                 count += 1
-        stats = dict(zip(names, (sums / count).tolist())) | advantage_stats
-        stats["actor_grad_norm"], stats["critic_grad_norm"] = (grad_norms / count).tolist()
+        stats = dict(zip(names, sums / count)) | advantage_stats
+        stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms / count
         return stats | self._state_stats(policy_net(self.actor), critic_net)
 
     def _learning_samples(
         self, batch: TensorDict, critic_net, generator: torch.Generator | None
-    ) -> tuple[TensorDict, TensorDict | None, dict[str, float]]:
+    ) -> tuple[TensorDict, TensorDict | None, dict[str, torch.Tensor]]:
         """The batch's samples with advantages and value targets, flat, holding only what the loss and
         the KL read (gathering the whole batch per minibatch was 8 % of an update); the same for its
         copy under other sensitivity weights (train.ppo.relabel_sensitivity; else None); the
@@ -284,14 +269,14 @@ class PPO:
         return data, unmirrored
 
     @torch.no_grad()
-    def _advantages(self, batch: TensorDict) -> dict[str, float]:
+    def _advantages(self, batch: TensorDict) -> dict[str, torch.Tensor]:
         """GAE into the batch (advantage, value target); with a value per term, each term's advantage spread."""
         if self.potential is not None:
             self.potential.shape(batch, self.cfg.gamma)
         if not self.cfg.value_per_term:
             self.gae(batch)
             return {}
-        stds = self._gae_per_term(batch).flatten(0, -2).std(dim=0).tolist()
+        stds = self._gae_per_term(batch).flatten(0, -2).std(dim=0)
         return {f"advantage_std/{name}": v for name, v in zip(self.term_names, stds)}
 
     @torch.no_grad()
@@ -325,14 +310,15 @@ class PPO:
         batch.set(keys.value_target, targets)
         return advantages
 
-    def _state_stats(self, net: GaussianPolicyNet, critic_net) -> dict[str, float]:
+    @torch.no_grad()
+    def _state_stats(self, net: GaussianPolicyNet, critic_net) -> dict[str, torch.Tensor]:
         """What the update leaves: learning rate, the policy's std and entropy, the value targets' statistics."""
-        stats = {"learning_rate": self.learning_rate, "action_std": net.log_std.exp().mean().item()}
+        stats = {"learning_rate": self.optimizer.learning_rate.clone(), "action_std": net.log_std.exp().mean()}
         # entropy of the diagonal Gaussian policy (state-independent): Σ_j ½·log(2πe) + log σ_j
-        stats["entropy"] = (0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()).item()
+        stats["entropy"] = 0.5 * math.log(2.0 * math.pi * math.e) * net.log_std.numel() + net.log_std.sum()
         if critic_net.target is not None:  # per value head: the whole return's, or each term's
             heads = [f"/{name}" for name in self.term_names] if critic_net.target.mean.numel() > 1 else [""]
-            for head, mean, std in zip(heads, critic_net.target.mean.tolist(), critic_net.target_std().tolist()):
+            for head, mean, std in zip(heads, critic_net.target.mean.clone(), critic_net.target_std()):
                 stats[f"value_target_mean{head}"], stats[f"value_target_std{head}"] = mean, std
         return stats
 
@@ -363,11 +349,10 @@ class PPO:
         return torch.cat([original, image], dim=0)
 
     def state_dict(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "learning_rate": self.learning_rate}
+        return self.optimizer.state_dict()
 
     def load_state_dict(self, state: dict) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.learning_rate = state["learning_rate"]
+        self.optimizer.load_state_dict(state)
 
 
 def _total_loss(out: TensorDict, critic_net) -> tuple[torch.Tensor, torch.Tensor]:

@@ -125,13 +125,7 @@ class Trainer:
         progress = Progress(tc.iterations, self.iteration, tc.max_minutes, self.main_rank)
         try:
             while self.iteration < tc.iterations:
-                t0 = time.perf_counter()
-                batch = self.collect()
-                t1 = time.perf_counter()
-                stats = self.learn(batch)
-                t2 = time.perf_counter()
-                self.iteration += 1
-                stats.update(self.diagnostics(batch, collect_s=t1 - t0, update_s=t2 - t1))
+                stats = self.iterate()
                 metrics.log(self.iteration, stats)
                 progress.update(stats)
                 if self.main_rank and self.iteration % tc.checkpoint_every == 0:
@@ -147,6 +141,22 @@ class Trainer:
 
     # ---- the steps of one iteration ---------------------------------------------------
 
+    def iterate(self) -> dict[str, float]:
+        """Collect, learn, and the iteration's figures, read from the device once (a read waits for
+        the device's queue: once per iteration, after the update, so `update_s` is its real time)."""
+        t0 = time.perf_counter()
+        batch = self.collect()
+        t1 = time.perf_counter()
+        stats = self.learn(batch) | self.diagnostics(batch)
+        stats = dict(zip(stats, torch.stack([v.to(torch.float64) for v in stats.values()]).tolist()))
+        t2 = time.perf_counter()
+        self.iteration += 1
+        ranks = dist.get_world_size() if distributed() else 1
+        stats["collect_s"], stats["update_s"] = t1 - t0, t2 - t1
+        stats["env_steps_per_s"] = batch.numel() * ranks / (t2 - t0)
+        stats["unstable"] = float(self.env.sim.num_unstable)  # a count kept on the host
+        return stats
+
     def collect(self) -> TensorDict:
         """num_steps policy steps in every env: the [num_envs, num_steps] batch."""
         if self.td is None:  # a new run (a resumed one continues from its checkpoint's observation)
@@ -155,7 +165,7 @@ class Trainer:
         self.impacts.add(batch)
         return batch
 
-    def learn(self, batch: TensorDict) -> dict[str, float]:
+    def learn(self, batch: TensorDict) -> dict[str, torch.Tensor]:
         """The PPO update on this process's share of the cores, then the batch into the running observation statistics."""
         self._share_cores()
         torch.set_num_threads(self.update_threads)
@@ -173,19 +183,13 @@ class Trainer:
             log.info("cores: %d fallkit processes running; the update now uses %d threads", running_processes(), share)
             self.update_threads = share
 
-    def diagnostics(self, batch: TensorDict, collect_s: float, update_s: float) -> dict[str, float]:
-        """Speed, reward, each reward term, stability and the finished episodes' impacts."""
-        ranks = dist.get_world_size() if distributed() else 1
-        stats = {
-            "reward": batch["next", "reward"].mean().item(),
-            "collect_s": collect_s,
-            "update_s": update_s,
-            "env_steps_per_s": batch.numel() * ranks / (collect_s + update_s),
-            "unstable": float(self.env.sim.num_unstable),
-        }
-        stats.update({f"reward_terms/{name}": v for name, v in self.env.pop_reward_terms().items()})
-        stats.update(self.impacts.pop())
-        return stats
+    def diagnostics(self, batch: TensorDict) -> dict[str, torch.Tensor]:
+        """The batch's reward, each reward term's and the finished episodes' impacts, on the device."""
+        stats = {"reward": batch["next", "reward"].mean()}
+        terms = self.env.rewards.pop_mean_tensor()
+        if terms is not None:
+            stats.update({f"reward_terms/{name}": v for name, v in zip(self.env.rewards.names, terms)})
+        return stats | self.impacts.pop()
 
     def save(self, path: Path) -> None:
         save_checkpoint(path, self.state_dict())
@@ -263,26 +267,29 @@ class Trainer:
 
 
 class EpisodeImpacts:
-    """The worst contact force [N] on any component over each finished episode (for the log)."""
+    """The worst contact force on any component over each finished episode, summed and counted on the
+    device (no host read per step): `pop` gives their mean and count since the last call."""
 
     def __init__(self, env: FallEnv):
         self.running = torch.zeros(env.batch_size, device=env.device)
-        self.finished: list[torch.Tensor] = []
+        self.total = torch.zeros((), device=env.device)
+        self.count = torch.zeros((), device=env.device)
 
     def add(self, batch: TensorDict) -> None:
         force = batch["next", "contact_force"].amax(dim=-1)  # [N, T]
         done = batch["next", "done"].squeeze(-1)
         for t in range(force.shape[1]):
             self.running = torch.maximum(self.running, force[:, t])
-            if done[:, t].any():
-                self.finished.append(self.running[done[:, t]].clone())
-                self.running[done[:, t]] = 0.0
+            self.total += torch.where(done[:, t], self.running, 0.0).sum()
+            self.count += done[:, t].sum()
+            self.running = torch.where(done[:, t], 0.0, self.running)
 
-    def pop(self) -> dict[str, float]:
-        impacts = torch.cat(self.finished) if self.finished else torch.empty(0)
-        self.finished.clear()
-        mean = impacts.mean().item() if len(impacts) else float("nan")
-        return {"episode/max_impact_force": mean, "episode/count": float(len(impacts))}
+    def pop(self) -> dict[str, torch.Tensor]:
+        mean = self.total / self.count  # NaN when no episode finished
+        stats = {"episode/max_impact_force": mean, "episode/count": self.count.clone()}
+        self.total.zero_()
+        self.count.zero_()
+        return stats
 
 
 def collect(

@@ -124,12 +124,17 @@ class RewardSum:
 
     def pop_means(self) -> dict[str, float]:
         """Per-term mean contribution per step since the last call (then starts over)."""
+        means = self.pop_mean_tensor()
+        return dict(zip(self.names, means.tolist())) if means is not None else {}
+
+    def pop_mean_tensor(self) -> torch.Tensor | None:
+        """`pop_means` as one [len(names)] tensor on the device, nothing read back (None: no step since)."""
         if self._count == 0:
-            return {}
-        means = (self._sum / self._count).tolist()
+            return None
+        means = self._sum / self._count
         self._sum.zero_()
         self._count = 0
-        return dict(zip(self.names, means))
+        return means
 
 
 def _checked(name: str, value: Any, n: int) -> torch.Tensor:

@@ -16,7 +16,6 @@ import torch
 from fallkit.config import InitialStateConfig
 from fallkit.poses.checker import PoseChecker
 from fallkit.robots.spec import RobotSpec
-from fallkit.rotations import quat_from_euler, quat_mul
 
 
 class InitialStateSampler:
@@ -40,15 +39,25 @@ class InitialStateSampler:
         tilt = math.radians(c.roll_pitch_deg)
         pitch, roll = uniform(n, half=tilt), uniform(n, half=tilt)
         yaw = uniform(n, half=math.pi) if c.random_yaw else torch.zeros(n, dtype=torch.float64)
-        zero = torch.zeros_like(yaw)
-        # pitch first, then roll (both about world axes), then the heading
-        tilt_q = quat_mul(quat_from_euler(roll, zero, zero), quat_from_euler(zero, pitch, zero))
-        quat = quat_mul(quat_from_euler(zero, zero, yaw), tilt_q)
+        quat = _root_quat(roll, pitch, yaw)
         qpos, _ = self.checker.on_ground(quat, joints, c.clearance)
         qvel = self.layout.qvel(
             uniform(n, 3, half=c.root_lin_vel), uniform(n, 3, half=c.root_ang_vel), uniform(n, len(joints[0]), half=c.joint_vel)
         )
         return qpos, qvel
+
+
+def _root_quat(roll: torch.Tensor, pitch: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """Rz(yaw) ⊗ Rx(roll) ⊗ Ry(pitch): pitch first, then roll (both about world axes), then the heading.
+
+    The Hamilton products of these one-axis rotations written out (their other terms are exact
+    zeros): the same bits as composing `quat_from_euler`s with `quat_mul`, in a tenth of the tensor
+    operations — this runs for the worlds that restart at every training step.
+    """
+    cr, sr, cp, sp = torch.cos(0.5 * roll), torch.sin(0.5 * roll), torch.cos(0.5 * pitch), torch.sin(0.5 * pitch)
+    cy, sy = torch.cos(0.5 * yaw), torch.sin(0.5 * yaw)
+    w, x, y, z = cr * cp, sr * cp, cr * sp, sr * sp  # Rx(roll) ⊗ Ry(pitch)
+    return torch.stack((cy * w - sy * z, cy * x - sy * y, cy * y + sy * x, cy * z + sy * w), -1)
 
 
 def initial_state(spec: RobotSpec, **config) -> InitialStateSampler:
