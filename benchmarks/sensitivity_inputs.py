@@ -8,6 +8,11 @@ eval seed): at the robot's weights, with the head at 4x (4.0), and with the batt
 battery experiment, one conditioned policy instead of two trained ones). Targets: the head's 95th-percentile
 max force falls by >= 25 % at 4x (`head_p95_reduction`); the battery's median and p95 fall at 5.0.
 
+`reading` says whether the policy reads its weight inputs at all: along 256 of its own falls at the robot's
+weights, how much the learned deviation (the MLP's share of the action) changes when the head's observed
+weight is 4x, when every weight is 4x, and — for scale — when the end pose is another fall's, each relative
+to the deviation's size, averaged over the fall.
+
     python benchmarks/sensitivity_inputs.py [--out runs/sensitivity_inputs] [--checkpoint RUN]
         [--unconditioned RUN]   # e.g. experiments/battery/<time>/1_biped20_battery_baseline: the cost of
                                 # conditioning at the default weights, against a policy of the same budget
@@ -23,10 +28,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import torch
 
 ROBOT = "robot=biped20_battery_baseline"
 TRAIN = [ROBOT, "train=quick", "train.iterations=450", "train.max_minutes=null", "eval.trials=512",
@@ -47,6 +55,58 @@ def summary(eval_json: Path) -> dict:
         "head_p95": force["head"]["p95"], "head_median": force["head"]["median"],
         "battery_p95": force["battery"]["p95"], "battery_median": force["battery"]["median"],
     }  # fmt: skip
+
+
+@torch.no_grad()
+def reading(run: Path, falls: int = 256) -> dict:
+    """How much the learned deviation moves with the observed weights, and with another end pose (see above)."""
+    from fallkit.env.build import make_env
+    from fallkit.env.observations import actor_slices
+    from fallkit.eval.evaluate import eval_run_config, prepare
+    from fallkit.eval.rollout import draw_trials
+    from fallkit.robots import robot_spec
+
+    setup = prepare(fallkit_config(run))
+    net, config = setup.policy.module.net, eval_run_config(setup.config, setup.config.eval.seconds)
+    env = make_env(config, robot_spec(config.robot), split=setup.split, seed=config.eval.seed, num_envs=falls,
+                   poses=setup.poses)  # fmt: skip
+    trials = draw_trials(env, falls, config.eval.seed)
+    cols = actor_slices(env.spec, env.observes_sensitivity, env.observes_gravity)
+    weights, head = cols["sensitivity"], cols["sensitivity"].start + env.spec.component_names.index("head")
+    goal = torch.cat([torch.arange(cols[n].start, cols[n].stop) for n in ("goal_root_quat", "goal_joint_pos")])
+    other = torch.roll(torch.arange(falls), 1)  # each fall's end pose replaced by the previous fall's
+    deviation = lambda o: net.mean(net.norm(o)) * net.prior.residual_weight(o)  # noqa: E731
+    changes: dict[str, list[float]] = {"head_4x": [], "every_weight_4x": [], "another_end_pose": []}
+    td = env.reset_to(trials.qpos, trials.qvel, trials.pose_ids)
+    for _ in range(env.max_steps):
+        obs = td["policy"]
+        base = deviation(obs)
+        size = base.norm(dim=-1).mean()
+        if size > 0:  # not yet faded out
+            variants = {"head_4x": obs.clone(), "every_weight_4x": obs.clone(), "another_end_pose": obs.clone()}
+            variants["head_4x"][:, head] += math.log(4.0)
+            variants["every_weight_4x"][:, weights] += math.log(4.0)
+            variants["another_end_pose"][:, goal] = obs[other][:, goal]
+            for name, o in variants.items():
+                changes[name].append(((deviation(o) - base).norm(dim=-1).mean() / size).item())
+        td = env.step(td.set("action", setup.policy(td.select("policy"))["action"]))["next"]
+    return {name: round(sum(v) / len(v), 3) for name, v in changes.items()}
+
+
+def fallkit_config(run: Path):
+    """The evaluation config of a checkpoint, as `python -m fallkit mode=eval checkpoint=RUN ROBOT` composes it."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    from fallkit.app import register_configs
+    from fallkit.config import validate
+
+    register_configs()
+    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["mode=eval", ROBOT, f"checkpoint={run}"])
+    raw = OmegaConf.to_container(cfg, resolve=False)
+    raw.pop("hydra", None)
+    return validate(raw)
 
 
 def main() -> None:
@@ -82,6 +142,7 @@ def main() -> None:
         "head_p95_reduction": round(1.0 - head["head_p95"] / d["head_p95"], 3),  # target >= 0.25
         "battery_median_ratio": round(bat["battery_median"] / max(d["battery_median"], 1e-9), 3),
         "battery_p95_ratio": round(bat["battery_p95"] / d["battery_p95"], 3),
+        "reading": reading(run),
         "evaluations": results,
     }
     for key, other in (("unconditioned", args.unconditioned), ("weighted", args.weighted)):

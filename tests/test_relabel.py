@@ -86,3 +86,27 @@ def test_training_relabels_every_minibatch_and_resumes(tmp_path):
     assert 0.0 <= float(row["kl"]) < 1.0 and float(row["loss_critic"]) > 0.0 and float(row["mirror_loss"]) >= 0.0
     resumed = Trainer(composed_config(*TINY, *ON, *extra, "train.iterations=3", f"resume={last}"), tmp_path / "run2")
     assert resumed.ppo.relabel is not None and resumed.run().exists()
+
+
+def test_the_copy_starts_at_ratio_one_and_its_advantage_carries_the_truncated_importance_weight(tmp_path):
+    """The copy's old log-probability is the collecting policy's at the copy's observation (PPO's ratio 1
+    before the first step), and its advantage is scaled by min(1, π_old(a|o') / π_old(a|o)): the copy
+    no longer pulls π(·|o') toward the actions drawn at o (docs/sensitivity_inputs.md)."""
+    from fallkit.rl.ppo import policy_net, value_net
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(composed_config(*TINY, *ON), tmp_path / "run")
+    with torch.no_grad():  # a policy whose actions depend on its inputs, its weights among them
+        policy_net(trainer.actor).mean[-1].weight.normal_(0.0, 0.3)
+    trainer.td = trainer._first_observation()
+    batch = trainer.collect()
+    ppo, keys = trainer.ppo, trainer.ppo.loss.tensor_keys
+    plain = ppo.relabel(batch.clone(), torch.Generator().manual_seed(5))
+    ppo._advantages(plain)
+    _, image, _ = ppo._learning_samples(batch.clone(), value_net(trainer.critic), torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        at_copy = trainer.actor.get_dist(plain.select("policy")).log_prob(plain[keys.action]).reshape(-1)
+    torch.testing.assert_close(image[keys.sample_log_prob], at_copy)
+    weight = (at_copy - batch[keys.sample_log_prob].reshape(-1)).exp().clamp(max=1.0)
+    assert weight.min() < 0.9  # the test means something: the policy reads its weights
+    torch.testing.assert_close(image[keys.advantage].squeeze(-1), plain[keys.advantage].reshape(-1) * weight)

@@ -38,9 +38,10 @@ One call of `PPO.update(batch)` is one iteration's learning:
   8. With `relabel` (train.ppo.relabel_sensitivity, a policy that observes its sensitivity weights),
      the batch is copied under newly drawn weights, its impact repriced (fallkit.rl.relabel), GAE
      runs on the copy too, and each minibatch is extended by the copy's rows of the same samples:
-     the same actions priced under two weightings. The copy keeps the collecting log-probability
-     (its ratio is the importance weight of an action drawn at the other weights); the KL stays on
-     the collected samples, as with the mirror, which then mirrors both.
+     the same actions priced under two weightings. The copy's old log-probability is the collecting
+     policy's at the copy's observation, its advantage scaled by the truncated importance weight
+     (`_reweigh_relabelled`); the KL stays on the collected samples, as with the mirror, which then
+     mirrors both.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -247,6 +248,7 @@ class PPO:
         if self.relabel is not None:
             image = self.relabel(batch, generator)
             self._advantages(image)
+            self._reweigh_relabelled(batch, image)
         if critic_net.target is not None:
             targets = batch[keys.value_target]
             if image is not None:
@@ -267,6 +269,22 @@ class PPO:
         if self.mirror is not None:
             data = self._with_mirror_image(data)
         return data, unmirrored
+
+    @torch.no_grad()
+    def _reweigh_relabelled(self, batch: TensorDict, image: TensorDict) -> None:
+        """The relabelled copy's old log-probability becomes the collecting policy's at the copy's own
+        observation o', so PPO's ratio starts at 1 there; the copy's advantage is scaled by the truncated
+        importance weight min(1, π_old(a|o') / π_old(a|o)) of an action drawn at o (V-trace's ρ̄).
+
+        Keeping π_old(a|o) as the copy's old log-probability (the first form) made the ratio start at
+        π(a|o')/π_old(a|o): for a policy that reads its weights, far from 1, and outside the clip band
+        the only gradients left (r < 1 − ε with A > 0, r > 1 + ε with A < 0) move π(a|o') back toward
+        π_old(a|o) — training the policy to ignore its weight inputs (measured: docs/sensitivity_inputs.md)."""
+        keys = self.loss.tensor_keys
+        log_prob = self.actor.get_dist(image.select("policy")).log_prob(image[keys.action])
+        weight = (log_prob - batch[keys.sample_log_prob]).exp().clamp(max=1.0)
+        image.set(keys.sample_log_prob, log_prob)
+        image.set(keys.advantage, image[keys.advantage] * weight.unsqueeze(-1))
 
     @torch.no_grad()
     def _advantages(self, batch: TensorDict) -> dict[str, torch.Tensor]:

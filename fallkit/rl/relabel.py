@@ -12,11 +12,12 @@ the world's whole rollout; PPO (`train.ppo.relabel_sensitivity`) runs GAE on it 
 reading w' and trains on both, so every minibatch holds the same actions priced two ways: the
 contrast that says what a weight input means.
 
-The copy's actions were drawn by the policy at w, not at w', so the copy keeps the collecting
-log-probability: PPO's ratio π_θ(a | o') / π_old(a | o) is then the importance weight of the
-copy's action and the clip bounds it, as hindsight policy gradients weigh relabelled goals
-(Rauber et al., 2019). The later actions of the rollout are the policy's at w too; PPO's per-step
-ratio leaves that uncorrected, as it does for the epochs' reuse of a batch.
+The copy's actions were drawn by the policy at w, not at w'. PPO (`PPO._reweigh_relabelled`) takes
+the collecting policy's log-probability at the copy's observation as the copy's old one, so the ratio
+π_θ(a | o') / π_old(a | o') starts at 1, and scales the copy's advantage by the truncated importance
+weight min(1, π_old(a | o') / π_old(a | o)) of an action drawn at o (V-trace's ρ̄; hindsight policy
+gradients weigh relabelled goals alike, Rauber et al. 2019). The later actions of the rollout are the
+policy's at w too; that stays uncorrected, as PPO leaves the epochs' reuse of a batch uncorrected.
 """
 
 from __future__ import annotations
