@@ -69,12 +69,13 @@ def test_relabelling_needs_drawn_weights_and_the_built_in_impact(biped):
 
 
 def test_training_relabels_every_minibatch_and_resumes(tmp_path):
-    """Each minibatch holds the collected rows, then their relabelled copies, then (with the mirror) the
-    mirror image of both: the loss's actor pass sees 4x the rows."""
+    """Each minibatch holds the collected rows, then their relabelled copies (other weights and, chained into
+    the same copy, other end poses), then (with the mirror) the mirror image of both: the loss's actor
+    pass sees 4x the rows."""
     from fallkit.rl.ppo import policy_net
     from fallkit.rl.trainer import Trainer
 
-    extra = ["train.ppo.mirror=true"]
+    extra = ["train.ppo.mirror=true", "train.ppo.relabel_end_pose=true"]
     trainer = Trainer(composed_config(*TINY, *ON, *extra, "train.iterations=2"), tmp_path / "run")
     rows = []
     policy_net(trainer.ppo.loss.actor_network).register_forward_hook(lambda m, i, o: rows.append(o[0].shape[0]))
@@ -85,7 +86,7 @@ def test_training_relabels_every_minibatch_and_resumes(tmp_path):
     row = dict(zip(header.split(","), lines[-1].split(",")))
     assert 0.0 <= float(row["kl"]) < 1.0 and float(row["loss_critic"]) > 0.0 and float(row["mirror_loss"]) >= 0.0
     resumed = Trainer(composed_config(*TINY, *ON, *extra, "train.iterations=3", f"resume={last}"), tmp_path / "run2")
-    assert resumed.ppo.relabel is not None and resumed.run().exists()
+    assert len(resumed.ppo.relabels) == 2 and resumed.run().exists()
 
 
 def test_the_copy_starts_at_ratio_one_and_its_advantage_carries_the_truncated_importance_weight(tmp_path):
@@ -101,7 +102,7 @@ def test_the_copy_starts_at_ratio_one_and_its_advantage_carries_the_truncated_im
     trainer.td = trainer._first_observation()
     batch = trainer.collect()
     ppo, keys = trainer.ppo, trainer.ppo.loss.tensor_keys
-    plain = ppo.relabel(batch.clone(), torch.Generator().manual_seed(5))
+    plain = ppo.relabels[0](batch.clone(), torch.Generator().manual_seed(5))
     ppo._advantages(plain)
     _, image, _ = ppo._learning_samples(batch.clone(), value_net(trainer.critic), torch.Generator().manual_seed(5))
     with torch.no_grad():
@@ -110,3 +111,39 @@ def test_the_copy_starts_at_ratio_one_and_its_advantage_carries_the_truncated_im
     weight = (at_copy - batch[keys.sample_log_prob].reshape(-1)).exp().clamp(max=1.0)
     assert weight.min() < 0.9  # the test means something: the policy reads its weights
     torch.testing.assert_close(image[keys.advantage].squeeze(-1), plain[keys.advantage].reshape(-1) * weight)
+
+
+def test_a_fall_relabelled_with_another_end_pose_is_the_fall_the_simulator_gives_for_it(biped):
+    """The copy under other end poses (train.ppo.relabel_end_pose): the goal's observation columns and the
+    orientation and joint terms are the env's own for those end poses; everything else is the fall's."""
+    from fallkit.rl.relabel import EndPoseRelabel
+
+    env, batch = _held_fall(biped)
+    tilt, joints = env.end_pose_goals()
+    relabel = EndPoseRelabel(biped, tilt, joints, env.rewards, env.max_steps * env.dt, RewardConfig().blend_time,
+                             sensitivity=True)  # fmt: skip
+    image = relabel(batch, torch.Generator().manual_seed(3))
+    cols = actor_slices(biped, sensitivity=True)
+    goal = torch.zeros(image["policy"].shape[-1], dtype=torch.bool)
+    goal[cols["goal_root_quat"]] = goal[cols["goal_joint_pos"]] = True
+    ids = torch.randint(len(tilt), (8,), generator=torch.Generator().manual_seed(3))  # the copy's draw
+    assert torch.equal(image["policy"][:, 0, cols["goal_joint_pos"]], joints[ids])
+    assert not torch.equal(image["policy"][..., goal], batch["policy"][..., goal])
+    for key in ("policy", "critic", ("next", "critic")):
+        assert torch.equal(image[key][..., : len(goal)][..., ~goal], batch[key][..., : len(goal)][..., ~goal])
+    # the same falls with those end poses set in the env: its reward terms and observed goals are the copy's
+    poses = random_end_poses(biped, 16, torch.Generator().manual_seed(0))  # as _held_fall's env
+    replay_env = FallEnv(biped, INPUTS, RewardConfig(), poses, make_sim(biped, 8, "mujoco", body_state=True), seed=0)
+    td = replay_env.reset()
+    replay_env.end_pose_ids[:] = ids
+    replay_env.goal_root_quat[:] = tilt[ids]
+    replay_env.goal_joint_pos[:] = joints[ids]
+    td = replay_env._observation(td["done"])  # the first observation, now with the drawn goals
+    hold = replay_env.action_for_setpoint(replay_env.sim.state.joint_pos.clone())
+    replay = replay_env.rollout(40, lambda td: td.set("action", hold), auto_reset=False, tensordict=td)
+    names = list(env.rewards.columns)
+    tracking = [names.index("orientation"), names.index("joints")]
+    assert image["next", "reward_terms"][..., tracking].abs().sum() > 0
+    torch.testing.assert_close(image["next", "reward_terms"], replay["next", "reward_terms"], rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(image["next", "reward"], replay["next", "reward"], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(image["critic"], replay["critic"])

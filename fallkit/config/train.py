@@ -63,6 +63,13 @@ class PPOConfig(Section):
         "are the same; fallkit.rl.relabel), so each sample contrasts two weightings of its action; off until a "
         "paired run shows it pays (docs/sensitivity_inputs.md)",
     )
+    relabel_end_pose: bool = Field(
+        False,
+        description="every minibatch also trains on its samples under another end pose drawn from the training "
+        "set, the orientation and joint terms recomputed for it (the end pose changes nothing in the physics; "
+        "fallkit.rl.relabel), so each fall also teaches how good it was for another goal; off until a paired "
+        "learning run shows it pays (docs/training.md)",
+    )
     value_per_term: bool = Field(
         True,
         description="a decomposed critic: one value head per reward term (impact, orientation, ...), each fitted to "

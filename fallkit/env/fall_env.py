@@ -129,6 +129,11 @@ class FallEnv(EnvBase):
         """The current world-frame target θ̂_t [N, 4]: the end pose's tilt turned to the robot's heading."""
         return path_frame(self.sim.state.root_quat).turn(self.goal_root_quat)
 
+    def end_pose_goals(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every end pose of this env's set as a goal is observed: its tilt in the path frame [P, 4] and its
+        joint angles [P, J], float32 (what `reset` puts into goal_root_quat and goal_joint_pos)."""
+        return self._goal_tilt, self.end_poses.joint_pos.to(torch.float32)
+
     def episode_starts(self) -> torch.Tensor:
         """[N] bool: the worlds whose next action is the first of their episode."""
         return self.step_count == 0

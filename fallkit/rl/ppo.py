@@ -35,8 +35,9 @@ One call of `PPO.update(batch)` is one iteration's learning:
      into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
      `term_lam` gives some terms a GAE λ of their own (`head_lambdas`), e.g. the orientation term,
      paid late, a longer credit horizon than the impact's.
-  8. With `relabel` (train.ppo.relabel_sensitivity, a policy that observes its sensitivity weights),
-     the batch is copied under newly drawn weights, its impact repriced (fallkit.rl.relabel), GAE
+  8. With `relabels` (train.ppo.relabel_sensitivity: a policy that observes its sensitivity weights;
+     train.ppo.relabel_end_pose), the batch is copied under newly drawn weights, its impact repriced,
+     and/or under other end poses, its tracking terms recomputed (fallkit.rl.relabel), GAE
      runs on the copy too, and each minibatch is extended by the copy's rows of the same samples:
      the same actions priced under two weightings. The copy's old log-probability is the collecting
      policy's at the copy's observation, its advantage scaled by the truncated importance weight
@@ -65,7 +66,7 @@ from fallkit.errors import ConfigError
 from fallkit.rl.models import GaussianPolicyNet, impact_weight_columns, policy_net, value_net
 from fallkit.rl.optimizer import AdaptiveAdam
 from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
-from fallkit.rl.relabel import SensitivityRelabel
+from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 from fallkit.robots.spec import RobotSpec
 
@@ -139,18 +140,18 @@ class PPO:
         mirror: ObservationMirror | None = None,
         potential: OrientationPotential | None = None,
         rewards: RewardSum | None = None,
-        relabel: SensitivityRelabel | None = None,
+        relabels: list[SensitivityRelabel | EndPoseRelabel] = (),
     ):
         if cfg.mirror and mirror is None:
             raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
-        if cfg.relabel_sensitivity and relabel is None:
-            raise ValueError("PPO: train.ppo.relabel_sensitivity needs a SensitivityRelabel (fallkit.rl.relabel)")
+        if (cfg.relabel_sensitivity or cfg.relabel_end_pose) and not relabels:
+            raise ValueError("PPO: train.ppo.relabel_* needs its relabelling (fallkit.rl.relabel)")
         if cfg.value_per_term and rewards is None:
             raise ValueError("PPO: train.ppo.value_per_term needs the env's reward terms (rewards=env.rewards)")
         self.cfg = cfg
         self.mirror = mirror if cfg.mirror else None
         self.potential = potential
-        self.relabel = relabel if cfg.relabel_sensitivity else None
+        self.relabels = list(relabels)  # applied in turn to one copy of the batch
         # with value_per_term: what each value head learns (names for the logs), and which head each of
         # the env's reward columns adds to (None: one head per column)
         self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
@@ -240,13 +241,15 @@ class PPO:
     ) -> tuple[TensorDict, TensorDict | None, dict[str, torch.Tensor]]:
         """The batch's samples with advantages and value targets, flat, holding only what the loss and
         the KL read (gathering the whole batch per minibatch was 8 % of an update); the same for its
-        copy under other sensitivity weights (train.ppo.relabel_sensitivity; else None); the
+        copy under other sensitivity weights or end poses (train.ppo.relabel_*; else None); the
         advantages' spread per term. The value targets join the critic's target statistics first."""
         keys = self.loss.tensor_keys
         advantage_stats = self._advantages(batch)
         image = None
-        if self.relabel is not None:
-            image = self.relabel(batch, generator)
+        if self.relabels:
+            image = batch
+            for relabel in self.relabels:
+                image = relabel(image, generator)
             self._advantages(image)
             self._reweigh_relabelled(batch, image)
         if critic_net.target is not None:

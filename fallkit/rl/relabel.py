@@ -1,4 +1,5 @@
-"""Hindsight sensitivity weights: every collected fall also teaches the same fall under other weights.
+"""Hindsight relabelling: every collected fall also teaches the same fall under other sensitivity weights
+(`SensitivityRelabel`) or another end pose (`EndPoseRelabel`).
 
 With env.sensitivity_inputs a policy must learn what the weights it observes ask of it, from
 episodes that each show one draw of the weights, and at these budgets it barely does
@@ -22,6 +23,8 @@ policy's at w too; that stays uncorrected, as PPO leaves the epochs' reuse of a 
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import torch
 from tensordict import TensorDictBase
 
@@ -30,8 +33,12 @@ from fallkit.env.observations import actor_slices, sensitivity_input
 from fallkit.env.randomization import draw_sensitivity
 from fallkit.env.rewards.context import RewardSum
 from fallkit.env.rewards.impact import impact
+from fallkit.env.rewards.tracking import blend, joints, orientation
 from fallkit.errors import ConfigError
 from fallkit.robots.spec import RobotSpec
+from fallkit.rotations import gravity_in_frame
+
+OBSERVATIONS = ("policy", "critic", ("next", "policy"), ("next", "critic"))  # what a copy relabels
 
 
 class SensitivityRelabel:
@@ -70,9 +77,69 @@ class SensitivityRelabel:
         terms = batch["next", "reward_terms"].clone()
         terms[..., self.impact_columns.to(device)] *= price
         image = batch.clone(recurse=False)
-        for key in ("policy", "critic", ("next", "policy"), ("next", "critic")):
+        for key in OBSERVATIONS:
             if key in batch.keys(include_nested=True):
                 image.set(key, _with_columns(batch[key], self.columns, new))
+        image.set(("next", "reward_terms"), terms)
+        image.set(("next", "reward"), terms.sum(dim=-1, keepdim=True))
+        return image
+
+
+class EndPoseRelabel:
+    """Copies of collected rollouts under other end poses, one drawn per world from the training set.
+
+    The end pose changes nothing in the physics either: it enters the observations (the target tilt in
+    the path frame, the target joints, with env.observe_gravity the target's up axis) and two reward
+    terms, orientation −u(t)‖R(θ)ᵀe_z − R(θ̂)ᵀe_z‖² and joints −u(t)‖q − q̂‖², both functions of the state
+    the step reached, which the critic observation holds without noise (its actor part: the root's tilt
+    in the path frame, whose up axis is the world-frame root's, and the joints; its phase t/T gives u(t)).
+    So the copy recomputes those two columns with the drawn end pose, through the reward's own term
+    functions, and keeps every other column. A fall that ended on its back teaches, priced for an end
+    pose on the back, what reached it. PPO weighs the copy as it weighs any relabelled one
+    (`PPO._reweigh_relabelled`).
+    """
+
+    def __init__(
+        self, spec: RobotSpec, goal_tilt: torch.Tensor, goal_joints: torch.Tensor, rewards: RewardSum,
+        episode_seconds: float, blend_time: float, sensitivity: bool = False, gravity: bool = False,
+    ):  # fmt: skip
+        for name, term in (("orientation", orientation), ("joints", joints)):
+            if name in rewards.names and rewards.functions[rewards.names.index(name)] is not term:
+                raise ConfigError(
+                    f"train.ppo.relabel_end_pose recomputes the built-in {name} term for other end poses; this run's "
+                    f"reward.terms.{name} replaces it: switch relabelling off"
+                )
+        self.goal_tilt, self.goal_joints = goal_tilt.float().cpu(), goal_joints.float().cpu()  # [P, 4], [P, J]
+        self.cols = actor_slices(spec, sensitivity, gravity)
+        self.phase = sum(c.stop - c.start for c in self.cols.values())  # the critic's first privileged column
+        self.episode_seconds, self.blend_time = episode_seconds, blend_time  # phase t/T back to t
+        self.recomputed = [(rewards.columns.index(n), f) for n, f in (("orientation", orientation), ("joints", joints))
+                           if n in rewards.columns]  # fmt: skip
+        self.scale = rewards.scale.cpu()
+
+    def __call__(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:
+        """The copy of an [N, T] batch (as `SensitivityRelabel`'s) under end poses drawn per world."""
+        device = batch.device
+        ids = torch.randint(len(self.goal_tilt), (batch.shape[0],), generator=generator)
+        tilt, q = (t[ids].to(device).unsqueeze(1) for t in (self.goal_tilt, self.goal_joints))  # [N, 1, ·]
+        goal = {"goal_root_quat": tilt, "goal_joint_pos": q, "goal_gravity": gravity_in_frame(tilt)}
+        image = batch.clone(recurse=False)
+        for key in OBSERVATIONS:
+            if key in batch.keys(include_nested=True):
+                obs = batch[key].clone()
+                for name, values in goal.items():
+                    if name in self.cols:
+                        obs[..., self.cols[name]] = values.expand(*obs.shape[:-1], values.shape[-1])
+                image.set(key, obs)
+        reached = batch["next", "critic"]  # the state each step reached, noiseless
+        time = reached[..., self.phase] * self.episode_seconds
+        ctx = SimpleNamespace(
+            state=SimpleNamespace(root_quat=reached[..., self.cols["root_quat"]], joint_pos=reached[..., self.cols["joint_pos"]]),
+            target_root_quat=tilt, target_joint_pos=q, blend=blend(time, self.blend_time),
+        )  # fmt: skip
+        terms = batch["next", "reward_terms"].clone()
+        for column, term in self.recomputed:
+            terms[..., column] = self.scale[column].to(device) * term(ctx)
         image.set(("next", "reward_terms"), terms)
         image.set(("next", "reward"), terms.sum(dim=-1, keepdim=True))
         return image

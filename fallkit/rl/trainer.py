@@ -40,7 +40,7 @@ from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, 
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.ranks import distributed, merge_over_ranks
-from fallkit.rl.relabel import SensitivityRelabel
+from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -110,9 +110,15 @@ class Trainer:
         potential = OrientationPotential(
             self.spec, ppo.orientation_potential, sensitivity.enabled, gravity
         ) if ppo.orientation_potential > 0 else None  # fmt: skip
-        relabel = SensitivityRelabel(self.spec, sensitivity, self.env.rewards, gravity) if ppo.relabel_sensitivity else None
+        relabels = [SensitivityRelabel(self.spec, sensitivity, self.env.rewards, gravity)] if ppo.relabel_sensitivity else []
+        if ppo.relabel_end_pose:
+            tilt, joints = self.env.end_pose_goals()
+            relabels.append(EndPoseRelabel(
+                self.spec, tilt, joints, self.env.rewards, self.env.max_steps * self.env.dt, config.reward.blend_time,
+                sensitivity.enabled, gravity,
+            ))  # fmt: skip
         mirror = mirror.to(self.env.device) if mirror else None
-        return PPO(self.actor, self.critic, ppo, mirror, potential, self.env.rewards, relabel)
+        return PPO(self.actor, self.critic, ppo, mirror, potential, self.env.rewards, relabels)
 
     @property
     def main_rank(self) -> bool:
