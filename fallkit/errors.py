@@ -61,3 +61,7 @@ def require_file(path: str | Path, what: str, error: type[FallkitError] = Fallki
     if not path.is_file():
         raise error(f"{path}: {what} not found")
     return path
+
+
+class TrainingError(FallkitError, RuntimeError):
+    """Training cannot go on: e.g. its losses became NaN (the run diverged)."""

@@ -267,3 +267,23 @@ def test_resume_from_an_optimizer_saved_with_a_float_rate(tmp_path):
         trainer.actor.load_state_dict(actor)
         trainer.critic.load_state_dict(critic)
     assert_same_weights(*weights)
+
+
+def test_a_diverged_run_stops_with_one_line_and_keeps_its_checkpoints(tmp_path):
+    """NaN weights make every later iteration (and a last.pt of them) worthless: training stops at the first
+    NaN loss with a TrainingError naming the iteration and the last checkpoint before it."""
+    from fallkit.errors import TrainingError
+    from fallkit.rl.models import policy_net
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config("train.iterations=4", "train.checkpoint_every=1"), tmp_path / "run")
+    trainer.td = trainer._first_observation()
+    trainer.learn(trainer.collect())
+    trainer.iteration = 1
+    trainer.save(tmp_path / "run" / "checkpoints" / "iter_000001.pt")
+    with torch.no_grad():
+        policy_net(trainer.actor).mean[0].weight.fill_(float("nan"))  # a diverged network
+    with pytest.raises(TrainingError, match="diverged at iteration 2: .*iter_000001.pt"):
+        trainer.run()
+    assert not (tmp_path / "run" / "checkpoints" / "last.pt").exists()
+    assert "nan" in (tmp_path / "run" / "metrics.csv").read_text().splitlines()[-1]

@@ -41,7 +41,7 @@ One call of `PPO.update(batch)` is one iteration's learning:
      runs on the copy too, and each minibatch is extended by the copy's rows of the same samples:
      the same actions priced under two weightings. The copy's old log-probability is the collecting
      policy's at the copy's observation, its advantage scaled by the truncated importance weight
-     (`_reweigh_relabelled`); the KL stays on the collected samples, as with the mirror, which then
+     (`fallkit.rl.relabel.weigh_copy`); the KL stays on the collected samples, as with the mirror, which then
      mirrors both.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
@@ -66,7 +66,7 @@ from fallkit.errors import ConfigError
 from fallkit.rl.models import GaussianPolicyNet, impact_weight_columns, policy_net, value_net
 from fallkit.rl.optimizer import AdaptiveAdam
 from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
-from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
+from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel, weigh_copy
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 from fallkit.robots.spec import RobotSpec
 
@@ -251,7 +251,7 @@ class PPO:
             for relabel in self.relabels:
                 image = relabel(image, generator)
             self._advantages(image)
-            self._reweigh_relabelled(batch, image)
+            weigh_copy(self.actor, batch, image, self.loss.tensor_keys)
         if critic_net.target is not None:
             targets = batch[keys.value_target]
             if image is not None:
@@ -272,22 +272,6 @@ class PPO:
         if self.mirror is not None:
             data = self._with_mirror_image(data)
         return data, unmirrored
-
-    @torch.no_grad()
-    def _reweigh_relabelled(self, batch: TensorDict, image: TensorDict) -> None:
-        """The relabelled copy's old log-probability becomes the collecting policy's at the copy's own
-        observation o', so PPO's ratio starts at 1 there; the copy's advantage is scaled by the truncated
-        importance weight min(1, π_old(a|o') / π_old(a|o)) of an action drawn at o (V-trace's ρ̄).
-
-        Keeping π_old(a|o) as the copy's old log-probability (the first form) made the ratio start at
-        π(a|o')/π_old(a|o): for a policy that reads its weights, far from 1, and outside the clip band
-        the only gradients left (r < 1 − ε with A > 0, r > 1 + ε with A < 0) move π(a|o') back toward
-        π_old(a|o) — training the policy to ignore its weight inputs (measured: docs/sensitivity_inputs.md)."""
-        keys = self.loss.tensor_keys
-        log_prob = self.actor.get_dist(image.select("policy")).log_prob(image[keys.action])
-        weight = (log_prob - batch[keys.sample_log_prob]).exp().clamp(max=1.0)
-        image.set(keys.sample_log_prob, log_prob)
-        image.set(keys.advantage, image[keys.advantage] * weight.unsqueeze(-1))
 
     @torch.no_grad()
     def _advantages(self, batch: TensorDict) -> dict[str, torch.Tensor]:

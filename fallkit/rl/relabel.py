@@ -13,7 +13,7 @@ the world's whole rollout; PPO (`train.ppo.relabel_sensitivity`) runs GAE on it 
 reading w' and trains on both, so every minibatch holds the same actions priced two ways: the
 contrast that says what a weight input means.
 
-The copy's actions were drawn by the policy at w, not at w'. PPO (`PPO._reweigh_relabelled`) takes
+The copy's actions were drawn by the policy at w, not at w'. PPO (`weigh_copy`) takes
 the collecting policy's log-probability at the copy's observation as the copy's old one, so the ratio
 π_θ(a | o') / π_old(a | o') starts at 1, and scales the copy's advantage by the truncated importance
 weight min(1, π_old(a | o') / π_old(a | o)) of an action drawn at o (V-trace's ρ̄; hindsight policy
@@ -27,6 +27,7 @@ from types import SimpleNamespace
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.modules import ProbabilisticActor
 
 from fallkit.config.env import SensitivityInputs
 from fallkit.env.observations import actor_slices, sensitivity_input
@@ -39,6 +40,10 @@ from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import gravity_in_frame
 
 OBSERVATIONS = ("policy", "critic", ("next", "policy"), ("next", "critic"))  # what a copy relabels
+# A relabelled copy's importance weight min(1, π_old(a|o')/π_old(a|o)) below which it gets no advantage
+# (`weigh_copy`): the action is then far off the collecting policy at o'.
+RELABEL_MIN_WEIGHT = 0.05
+SILENT = 30.0  # [nats] such a copy's old log-probability above its current one: no gradient from its ratio
 
 
 class SensitivityRelabel:
@@ -96,7 +101,7 @@ class EndPoseRelabel:
     So the copy recomputes those two columns with the drawn end pose, through the reward's own term
     functions, and keeps every other column. A fall that ended on its back teaches, priced for an end
     pose on the back, what reached it. PPO weighs the copy as it weighs any relabelled one
-    (`PPO._reweigh_relabelled`).
+    (`weigh_copy`).
     """
 
     def __init__(
@@ -149,3 +154,31 @@ def _with_columns(obs: torch.Tensor, columns: slice, values: torch.Tensor) -> to
     out = obs.clone()
     out[..., columns] = values.expand(*obs.shape[:-1], values.shape[-1])
     return out
+
+
+@torch.no_grad()
+def weigh_copy(actor: ProbabilisticActor, batch: TensorDictBase, image: TensorDictBase, keys) -> None:
+    """How PPO weighs a relabelled copy `image` of `batch` (`keys`: the loss's tensor keys), in place.
+
+    The copy's old log-probability becomes the collecting policy's at the copy's own observation o',
+    so PPO's ratio starts at 1 there; the copy's advantage is scaled by the truncated importance weight
+    min(1, π_old(a|o') / π_old(a|o)) of an action drawn at o (V-trace's ρ̄).
+
+    Keeping π_old(a|o) as the copy's old log-probability (the first form) made the ratio start at
+    π(a|o')/π_old(a|o): for a policy that reads its weights, far from 1, and outside the clip band
+    the only gradients left (r < 1 − ε with A > 0, r > 1 + ε with A < 0) move π(a|o') back toward
+    π_old(a|o) — training the policy to ignore its weight inputs (measured: docs/sensitivity_inputs.md).
+
+    A copy whose action the collecting policy would hardly have drawn at o' (weight below
+    `RELABEL_MIN_WEIGHT`) keeps its value target but teaches the actor nothing: with π_old(a|o') tiny,
+    a small step of the policy makes its ratio huge, and PPO's clip does not bound the surrogate of a
+    huge ratio with a negative advantage (measured: end-pose copies, whose goal moves the action far
+    more than a weight does, drove the surrogate to 1e7 and the weights to NaN within 200
+    iterations). Its old log-probability is set `SILENT` nats above the current one: a ratio of
+    e^−30, so the surrogate gives it no gradient whatever its advantage after the minibatch's
+    normalisation (a zero advantage would not stay zero there)."""
+    log_prob = actor.get_dist(image.select("policy")).log_prob(image[keys.action])
+    weight = (log_prob - batch[keys.sample_log_prob]).exp().clamp(max=1.0)
+    silent = weight < RELABEL_MIN_WEIGHT
+    image.set(keys.sample_log_prob, torch.where(silent, log_prob + SILENT, log_prob))
+    image.set(keys.advantage, image[keys.advantage] * torch.where(silent, 0.0, weight).unsqueeze(-1))

@@ -18,6 +18,7 @@ observation statistics are averaged over ranks; rank 0 logs and saves.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -32,9 +33,9 @@ from fallkit.config import FallkitConfig
 from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.env.mirror import ObservationMirror, observation_mirror
-from fallkit.errors import CheckpointError, ConfigError
+from fallkit.errors import CheckpointError, ConfigError, TrainingError
 from fallkit.machine import core_share, running_processes
-from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, save_checkpoint
+from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
@@ -133,6 +134,7 @@ class Trainer:
             while self.iteration < tc.iterations:
                 stats = self.iterate()
                 metrics.log(self.iteration, stats)
+                self._check_finite(stats)
                 progress.update(stats)
                 if self.main_rank and self.iteration % tc.checkpoint_every == 0:
                     self.save(self.run_dir / "checkpoints" / f"iter_{self.iteration:06d}.pt")
@@ -254,6 +256,19 @@ class Trainer:
         # statistics from the first observations, so the first update is not on raw scales
         _update_normalizers(self.actor, self.critic, td, self.ppo.mirror)
         return td
+
+    def _check_finite(self, stats: dict[str, float]) -> None:
+        """Stop at the first iteration whose losses are NaN or infinite: the weights are then too, and
+        every iteration after it (and a last.pt of them) would be wasted; the periodic checkpoints stay."""
+        if math.isfinite(stats["loss_objective"]) and math.isfinite(stats["loss_critic"]):
+            return
+        kept = run_checkpoints(self.run_dir)
+        where = f"the last checkpoint before it is {kept[0]}" if kept else "no checkpoint was saved before it"
+        raise TrainingError(
+            f"training diverged at iteration {self.iteration}: the PPO loss is {stats['loss_objective']} (value loss "
+            f"{stats['loss_critic']}); metrics.csv has the iterations before it and {where}: resume from it with a "
+            "smaller train.ppo.desired_kl or without the last learning aid switched on"
+        )
 
     def _say_why_it_stopped(self, signal_name: str | None) -> None:
         if signal_name:
