@@ -136,6 +136,12 @@ def test_chunked_evaluation_equals_one_batch_and_json_schema(biped, tmp_path):
         assert (tmp_path / png).stat().st_size > 10_000
     arrays = np.load(tmp_path / "eval_trials.npz")
     assert arrays["freeze/max_impact_force"].shape == (n,)
+    # a strategy none of whose falls stayed stable (a diverged policy's NaN actions) is left out of the plots
+    whole[names[0]].unstable[:] = True
+    (tmp_path / "all_unstable").mkdir()
+    ev.write_results(whole, biped.component_names, info, tmp_path / "all_unstable")
+    assert json.loads((tmp_path / "all_unstable" / "eval.json").read_text())[names[0]]["unstable_trials"] == n
+    assert (tmp_path / "all_unstable" / "component_impact.png").is_file()
 
 
 def test_trials_are_reproducible_and_use_every_pose(biped):

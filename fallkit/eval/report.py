@@ -42,7 +42,10 @@ def write_results(
         **{f"random/{s}/{key}": v for s, m in (random or {}).items() for key, v in m.arrays().items()},
     )
     title = f"{info['robot']}: {info['trials']} falls per strategy"
-    stable = {name: m.take(~m.unstable) for name, m in results.items()}  # as in the statistics
+    # as in the statistics; a strategy none of whose falls stayed stable (a policy with NaN actions) has nothing to plot
+    stable = {name: m.take(~m.unstable) for name, m in results.items() if not m.unstable.all()}
+    for name in sorted(set(results) - set(stable)):
+        log.error("every fall of %s went unstable (restarted by the simulator): left out of the plots", name)
     figures = plots.plot_all(stable, components, run_dir, title)
     (run_dir / "eval.md").write_text(markdown_report(summary, info, [f.name for f in figures], choice))
     unstable = {n: s["unstable_trials"] for n, s in summary.items() if s["unstable_trials"]}
