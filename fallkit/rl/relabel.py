@@ -131,10 +131,10 @@ class EndPoseRelabel:
         image = batch.clone(recurse=False)
         for key in OBSERVATIONS:
             if key in batch.keys(include_nested=True):
-                obs = batch[key].clone()
+                obs = batch[key]
                 for name, values in goal.items():
                     if name in self.cols:
-                        obs[..., self.cols[name]] = values.expand(*obs.shape[:-1], values.shape[-1])
+                        obs = _with_columns(obs, self.cols[name], values)
                 image.set(key, obs)
         reached = batch["next", "critic"]  # the state each step reached, noiseless
         time = reached[..., self.phase] * self.episode_seconds
