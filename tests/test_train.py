@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -119,6 +120,35 @@ def test_torchrun_two_ranks_on_gloo(tmp_path):
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
     assert load_checkpoint(tmp_path / "run")["iteration"] == 2
     assert "weights identical on 2 ranks" in r.stdout + r.stderr
+
+
+_AGREE = """
+import json, sys
+import torch.distributed as dist
+from fallkit.rl.ranks import any_over_ranks
+dist.init_process_group("gloo")
+rank = dist.get_rank()
+# rank 1 alone ran out of time, rank 0 alone diverged; nobody was signalled
+print(json.dumps({"rank": rank, "agreed": any_over_ranks((False, rank == 1, rank == 0))}), flush=True)
+dist.destroy_process_group()
+"""
+
+
+def test_ranks_stop_together_whichever_rank_decided(tmp_path):
+    """A time budget, a signal or a NaN seen by one rank stops every rank at the same iteration: a rank
+    that stopped alone would leave the others waiting forever in the next all-reduce."""
+    script = tmp_path / "agree.py"
+    script.write_text(_AGREE)
+    torchrun = Path(sys.executable).with_name("torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(
+        [str(torchrun), "--standalone", "--nproc_per_node=2", str(script)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    lines = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+    assert sorted(d["rank"] for d in lines) == [0, 1]
+    assert all(d["agreed"] == [False, True, True] for d in lines)
 
 
 @pytest.mark.slow

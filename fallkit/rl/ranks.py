@@ -46,3 +46,17 @@ def mean_over_ranks(x: torch.Tensor) -> torch.Tensor:
     x = x.clone()
     dist.all_reduce(x, op=dist.ReduceOp.SUM)
     return x / dist.get_world_size()
+
+
+def any_over_ranks(flags: tuple[bool, ...], device: torch.device | str = "cpu") -> tuple[bool, ...]:
+    """Each flag true on any rank, on every rank (no-op on one process).
+
+    What ends the loop — a time budget, a signal, a diverged loss — is decided by each rank on its own
+    (clocks and signals do not reach the ranks at the same iteration); a rank that stopped alone would
+    leave the others waiting forever in the next collective. One all-reduce of a few bytes per iteration.
+    """
+    if not distributed():
+        return flags
+    agreed = torch.tensor(flags, dtype=torch.int32, device=device)
+    dist.all_reduce(agreed, op=dist.ReduceOp.MAX)
+    return tuple(bool(f) for f in agreed.tolist())

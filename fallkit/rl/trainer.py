@@ -40,7 +40,7 @@ from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
-from fallkit.rl.ranks import distributed, merge_over_ranks
+from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
@@ -134,12 +134,18 @@ class Trainer:
             while self.iteration < tc.iterations:
                 stats = self.iterate()
                 metrics.log(self.iteration, stats)
-                self._check_finite(stats)
+                finite = math.isfinite(stats["loss_objective"]) and math.isfinite(stats["loss_critic"])
+                # every rank stops at the same iteration, whichever rank's reason it was
+                signalled, out_of_time, diverged = any_over_ranks(
+                    (bool(stop.requested), progress.out_of_time, not finite), self.env.device
+                )
+                if diverged:
+                    self._diverged(stats, finite)
                 progress.update(stats)
                 if self.main_rank and self.iteration % tc.checkpoint_every == 0:
                     self.save(self.run_dir / "checkpoints" / f"iter_{self.iteration:06d}.pt")
-                if stop.requested or progress.out_of_time:
-                    self._say_why_it_stopped(stop.requested)
+                if signalled or out_of_time:
+                    self._say_why_it_stopped(stop.requested or ("a signal to another rank" if signalled else None))
                     break
         finally:
             progress.close()
@@ -257,17 +263,16 @@ class Trainer:
         _update_normalizers(self.actor, self.critic, td, self.ppo.mirror)
         return td
 
-    def _check_finite(self, stats: dict[str, float]) -> None:
-        """Stop at the first iteration whose losses are NaN or infinite: the weights are then too, and
-        every iteration after it (and a last.pt of them) would be wasted; the periodic checkpoints stay."""
-        if math.isfinite(stats["loss_objective"]) and math.isfinite(stats["loss_critic"]):
-            return
+    def _diverged(self, stats: dict[str, float], finite_here: bool) -> None:
+        """Stop at the first iteration whose losses are NaN or infinite (on any rank): the weights are then
+        too, and every iteration after it (and a last.pt of them) would be wasted; the periodic checkpoints stay."""
         kept = run_checkpoints(self.run_dir)
         where = f"the last checkpoint before it is {kept[0]}" if kept else "no checkpoint was saved before it"
+        loss = "on another rank" if finite_here else f"{stats['loss_objective']} (value loss {stats['loss_critic']})"
         raise TrainingError(
-            f"training diverged at iteration {self.iteration}: the PPO loss is {stats['loss_objective']} (value loss "
-            f"{stats['loss_critic']}); metrics.csv has the iterations before it and {where}: resume from it with a "
-            "smaller train.ppo.desired_kl or without the last learning aid switched on"
+            f"training diverged at iteration {self.iteration}: the PPO loss is {loss}; metrics.csv has the "
+            f"iterations before it and {where}: resume from it with a smaller train.ppo.desired_kl or without "
+            "the last learning aid switched on"
         )
 
     def _say_why_it_stopped(self, signal_name: str | None) -> None:
