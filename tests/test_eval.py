@@ -132,6 +132,11 @@ def test_chunked_evaluation_equals_one_batch_and_json_schema(biped, tmp_path):
         assert s["max_impact_force"]["mean"] > 100.0  # 0.2 s after the drop every robot has touched down
     md = (tmp_path / "eval.md").read_text()
     assert all(name in md for name in names) and "MROE" in md
+    # each component's fall-phase mean, the figures whose largest per fall is the fall-phase mean
+    fall_table = md.split("## Per component: fall-phase mean impact force")[1].split("##")[0]
+    for name in names:
+        cells = [f"{data[name]['per_component'][c]['fall_mean_impact_force']['mean']:.1f}" for c in biped.component_names]
+        assert f"| {name} | " + " | ".join(cells) + " |" in fall_table
     for png in ("impact_boxplot.png", "component_impact.png", "tracking_boxplot.png"):
         assert (tmp_path / png).stat().st_size > 10_000
     arrays = np.load(tmp_path / "eval_trials.npz")

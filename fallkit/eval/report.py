@@ -161,17 +161,27 @@ def markdown_report(summary: dict, info: dict, figures: list[str], choice: dict 
     ]
     out += choice_markdown(choice, _label) if choice is not None else []
     out += ["## Per component: max impact force [N], median / 95th percentile", ""]
-    comps = list(summary[names[0]]["per_component"])
-    out += ["| strategy | " + " | ".join(comps) + " |", "|---|" + "---|" * len(comps)]
-    for n in names:
-        pc = summary[n]["per_component"]
-        out.append(
-            f"| {_label(n)} | "
-            + " | ".join(f"{pc[c]['max_impact_force']['median']:.0f} / {pc[c]['max_impact_force']['p95']:.0f}" for c in comps)
-            + " |"
-        )
+    out += _component_table(summary, names, lambda f: f"{f['max_impact_force']['median']:.0f} / {f['max_impact_force']['p95']:.0f}")
+    out += [
+        "",
+        "## Per component: fall-phase mean impact force [N], mean over falls",
+        "",
+        "The fall-phase mean above is, per fall, the largest of these. A policy trained with sensitivity weights",
+        "trades load between components: what it keeps off the fragile ones, the others carry.",
+        "",
+    ]
+    out += _component_table(summary, names, lambda f: f"{f['fall_mean_impact_force']['mean']:.1f}")
     out += ["", "## Plots", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(out)
+
+
+def _component_table(summary: dict, names: list[str], cell) -> list[str]:
+    """One markdown row per strategy, one column per component; `cell` formats a component's figures."""
+    comps = list(summary[names[0]]["per_component"])
+    rows = ["| strategy | " + " | ".join(comps) + " |", "|---|" + "---|" * len(comps)]
+    for n in names:
+        rows.append(f"| {_label(n)} | " + " | ".join(cell(summary[n]["per_component"][c]) for c in comps) + " |")
+    return rows
 
 
 def _label(name: str) -> str:
