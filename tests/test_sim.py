@@ -62,6 +62,10 @@ def test_reset_subset_keeps_the_others(biped, backend):
     torch.testing.assert_close(st.qpos[[0, 2]], before[[0, 2]])
     lay = sim.layout
     torch.testing.assert_close(st.joint_pos[[1, 3]], new_q[:, lay.joint_qpos].float(), atol=1e-6, rtol=0)
+    new_v[1, 0] = float("nan")  # a broken state is refused before any world changes
+    with pytest.raises(ValueError, match=r"^sim.reset: qpos/qvel contain NaN or Inf$"):
+        sim.reset(torch.tensor([1, 3]), new_q, new_v)
+    torch.testing.assert_close(sim.state.qpos[[0, 2]], before[[0, 2]])
 
 
 def test_gain_scaling_per_world(biped, backend):

@@ -173,10 +173,11 @@ class WarpSim:
         ids = world_ids.to(self.device, torch.long)
         if ids.numel() == 0:
             return
-        qpos = qpos.detach().to(self.device, torch.float32)
-        qvel = qvel.detach().to(self.device, torch.float32)
+        # checked where the caller made them (the host's sampler: no device read), then copied
         if not bool(torch.isfinite(qpos).all() & torch.isfinite(qvel).all()):
             raise ValueError("sim.reset: qpos/qvel contain NaN or Inf")
+        qpos = qpos.detach().to(self.device, torch.float32)
+        qvel = qvel.detach().to(self.device, torch.float32)
         self._reset_qpos[ids] = qpos
         self._reset_qvel[ids] = qvel
         self._mask.zero_()
