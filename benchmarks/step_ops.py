@@ -4,7 +4,7 @@ On a GPU every tensor operation is (at least) one kernel launch and every host r
 value (`.item()`, `bool(tensor)`, `nonzero`, a tensor used as a size) is a sync that stalls the
 launch queue; both are what a CUDA graph removes and what "no host syncs inside the rollout"
 forbids. On the CPU, torch's profiler counts them on the same code: this runs the trainer's own
-collection (`Trainer.collect`: the actor, TorchRL's step_and_maybe_reset of FallEnv, the episode
+collection (`Trainer.collect`: the actor, FallEnv's step_and_maybe_reset, the episode
 statistics) from the trainer's first, staggered observation, so episodes end and restart as in
 training, and reports per env step (one policy step of the whole batch):
 

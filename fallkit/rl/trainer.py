@@ -1,7 +1,7 @@
 """`mode=train`: PPO on the batched falling environment (paper Sec. V-A, Table III).
 
 `Trainer.run()` is the whole loop, one iteration per pass, read top to bottom:
-  collect   num_steps policy steps in every env (TorchRL's step_and_maybe_reset:
+  collect   num_steps policy steps in every env (FallEnv's step_and_maybe_reset:
             finished envs restart with a fresh initial state and end pose)
   learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr; then
             merge the batch into the running observation statistics (after the
@@ -323,7 +323,8 @@ def collect(
 ) -> tuple[TensorDict, TensorDict]:
     """num_steps policy steps in every env: the [num_envs, num_steps] batch and the next step's input.
 
-    TorchRL's step_and_maybe_reset restarts finished episodes (fresh initial state and end pose).
+    FallEnv's step_and_maybe_reset (TorchRL's contract, one host read per step) restarts finished
+    episodes (fresh initial state and end pose).
     With `noise` the actions explore with noise correlated in time (train.noise_correlation_time).
     """
     steps = []
