@@ -135,7 +135,8 @@ def test_chunked_evaluation_equals_one_batch_and_json_schema(biped, tmp_path):
     # each component's fall-phase mean, the figures whose largest per fall is the fall-phase mean
     fall_table = md.split("## Per component: fall-phase mean impact force")[1].split("##")[0]
     for name in names:
-        cells = [f"{data[name]['per_component'][c]['fall_mean_impact_force']['mean']:.1f}" for c in biped.component_names]
+        per_component = data[name]["per_component"]
+        cells = [f"{per_component[c]['fall_mean_impact_force']['mean']:.1f}" for c in biped.component_names]
         assert f"| {name} | " + " | ".join(cells) + " |" in fall_table
     for png in ("impact_boxplot.png", "component_impact.png", "tracking_boxplot.png"):
         assert (tmp_path / png).stat().st_size > 10_000

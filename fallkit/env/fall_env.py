@@ -219,7 +219,7 @@ class FallEnv(EnvBase):
         done = nxt.get("done").view(-1)
         if self._restart(done, done.nonzero().view(-1)):
             fresh = self._observation(self._no.expand(self.num_envs, 1))
-            nxt.where(~done, other=fresh, out=nxt, pad=0, update_batch_size=True)  # TorchRL's merge (a key fresh lacks: 0)
+            nxt.where(~done, other=fresh, out=nxt, pad=0, update_batch_size=True)  # TorchRL's own merge
         return td, nxt
 
     def _restart(self, mask: torch.Tensor, ids: torch.Tensor) -> bool:
