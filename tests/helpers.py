@@ -36,3 +36,26 @@ def composed_config(*overrides: str):
     raw = OmegaConf.to_container(cfg, resolve=False)
     raw.pop("hydra", None)
     return validate(raw)
+
+
+def host_reads(fn) -> list[str]:
+    """The device-to-host reads (`fallkit.rl.monitor.HOST_READ_OPS`: `.item()`, `bool(tensor)`, `nonzero` …)
+    made while `fn` runs, each as "op at file:line" of the innermost Python frame outside torch."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from fallkit.rl.monitor import HOST_READ_OPS
+
+    found: list[str] = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func._schema.name in HOST_READ_OPS:
+                frame = sys._getframe(1)
+                while frame is not None and f"{os.sep}torch{os.sep}" in frame.f_code.co_filename:
+                    frame = frame.f_back
+                found.append(f"{func} at {frame.f_code.co_filename}:{frame.f_lineno}" if frame else f"{func} at ?")
+            return func(*args, **(kwargs or {}))
+
+    with Reads():
+        fn()
+    return found

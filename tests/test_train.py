@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import TINY, composed_config, fallkit_cli
+from helpers import TINY, composed_config, fallkit_cli, host_reads
 
 from fallkit.rl.checkpoint import load_checkpoint
 
@@ -231,26 +231,8 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
 
 
 def _reads_by_fallkit(fn) -> list[str]:
-    """The device-to-host reads (`.item()`, `bool(tensor)`, `nonzero`, a tensor as a size) that fallkit's
-    own code makes while `fn` runs: each op is attributed to the innermost Python frame outside torch."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    found: list[str] = []
-
-    class Reads(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if any(name in str(func) for name in ("_local_scalar_dense", "nonzero", "item")):
-                frame = sys._getframe(1)
-                while frame is not None and f"{os.sep}torch{os.sep}" in frame.f_code.co_filename:
-                    frame = frame.f_back
-                where = f"{frame.f_code.co_filename}:{frame.f_lineno}" if frame else "?"
-                if f"{os.sep}fallkit{os.sep}" in where:
-                    found.append(f"{func} at {where}")
-            return func(*args, **(kwargs or {}))
-
-    with Reads():
-        fn()
-    return found
+    """The host reads that fallkit's own code makes while `fn` runs."""
+    return [read for read in host_reads(fn) if f"{os.sep}fallkit{os.sep}" in read]
 
 
 def test_the_update_and_the_logged_figures_read_nothing_back_per_minibatch(tmp_path):

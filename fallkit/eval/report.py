@@ -161,8 +161,9 @@ def markdown_report(summary: dict, info: dict, figures: list[str], choice: dict 
     ]
     out += choice_markdown(choice, _label) if choice is not None else []
     out += ["## Per component: max impact force [N], median / 95th percentile", ""]
-    max_force = lambda f: f"{f['max_impact_force']['median']:.0f} / {f['max_impact_force']['p95']:.0f}"  # noqa: E731
-    out += _component_table(summary, names, max_force)
+    out += _component_table(
+        summary, names, lambda f: f"{f['max_impact_force']['median']:.0f} / {f['max_impact_force']['p95']:.0f}"
+    )
     out += [
         "",
         "## Per component: fall-phase mean impact force [N], mean over falls",
