@@ -152,6 +152,13 @@ class TrainConfig(Section):
         "= bfloat16 on such a CPU, float32 elsewhere (resolved when training starts; the checkpoint records which). "
         "Training only: a trained policy is evaluated and exported in float32",
     )
+    init_from: str | None = Field(
+        None,
+        description="start the actor and critic from a trained policy (checkpoint or run dir): its weights, "
+        "observation statistics and action std, observation parts matched by name, parts it did not observe (e.g. "
+        "env.sensitivity_inputs) starting at zero weight; a new run otherwise (fallkit.rl.init_from). resume= "
+        "continues a run instead",
+    )
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")

@@ -58,6 +58,13 @@ class AdaptiveAdam:
         if self.cfg.critic_learning_rate is None:
             self.group_rates[1].copy_(self.learning_rate)
 
+    def start_at(self, rate: float) -> None:
+        """The actor's rate (and the critic's, where it follows the actor's) before the first step."""
+        self.learning_rate.fill_(rate)
+        self.group_rates[0].fill_(rate)
+        if self.cfg.critic_learning_rate is None:
+            self.group_rates[1].fill_(rate)
+
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
 

@@ -37,6 +37,7 @@ from fallkit.errors import CheckpointError, ConfigError, TrainingError
 from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint
 from fallkit.rl.exploration import CorrelatedNoise
+from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
@@ -83,10 +84,17 @@ class Trainer:
             critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
         )
         self.critic.to(self.env.device)
+        self.new_columns, start_rate = None, None  # train.init_from: the loaded networks' new inputs, rate
+        if tc.init_from and not config.resume:
+            self.new_columns, start_rate = start_from(
+                tc.init_from, self.actor, self.critic, config, self.spec, self.env.device
+            )
         if distributed():  # every rank starts from rank 0's weights (as DistributedDataParallel does)
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
         self.ppo = self._make_ppo(mirror)
+        if start_rate is not None:
+            self.ppo.optimizer.start_at(start_rate)
         self.shuffle = torch.Generator().manual_seed(seed)
         self.noise = CorrelatedNoise(
             self.env.num_envs, act_dim, tc.noise_correlation_time, self.env.dt, self.env.device
@@ -260,6 +268,9 @@ class Trainer:
         td = self.env.reset()
         self.env.stagger_episodes()
         # statistics from the first observations, so the first update is not on raw scales
+        if self.new_columns is not None:
+            fresh_statistics(policy_net(self.actor).norm, self.new_columns.policy, td["policy"])
+            fresh_statistics(value_net(self.critic).norm, self.new_columns.critic, td["critic"])
         _update_normalizers(self.actor, self.critic, td, self.ppo.mirror)
         return td
 
