@@ -103,3 +103,10 @@ def test_a_policy_of_another_robot_model_is_refused(tmp_path, trained):
     other = save_checkpoint(tmp_path / "go1.pt", {k: v for k, v in ckpt.items() if k not in ("path", "format_version")})
     with pytest.raises(ConfigError, match="trained on robot 'go1', another model than this run's 'biped20'"):
         trainer(tmp_path / "new", f"train.init_from={other}")
+
+
+def test_a_missing_checkpoint_says_which_setting_named_it(tmp_path):
+    from fallkit.errors import CheckpointError
+
+    with pytest.raises(CheckpointError, match=r"^train.init_from: checkpoint not found: .*nowhere$"):
+        trainer(tmp_path / "new", f"train.init_from={tmp_path / 'nowhere'}")

@@ -18,6 +18,7 @@ does not.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import torch
@@ -25,10 +26,12 @@ from torch import nn
 
 from fallkit.config import FallkitConfig
 from fallkit.env.observations import actor_layout, critic_layout
-from fallkit.errors import ConfigError
+from fallkit.errors import CheckpointError, ConfigError
 from fallkit.rl.checkpoint import load_checkpoint
 from fallkit.rl.models import RunningNorm
 from fallkit.robots.spec import RobotSpec
+
+log = logging.getLogger(__name__)
 
 # What the loaded weights' actions mean: these must be the loaded run's.
 _SAME_MEANING = ("train.prior", "train.fade_residual", "train.prior_power", "env.action_scale", "train.ppo.normalize_value")
@@ -45,10 +48,13 @@ class NewColumns:
 
 def start_from(where: str, actor: nn.Module, critic: nn.Module, config: FallkitConfig, spec: RobotSpec,
                device: torch.device | str) -> tuple[NewColumns, float]:  # fmt: skip
-    """Load the actor and critic of checkpoint `where` (a file or a run directory) into this run's (the modules
-    a checkpoint saves: fallkit.rl.models.make_actor, make_critic);
-    returns the columns new to them and the loaded run's last actor learning rate (where the KL rule starts)."""
-    ckpt = load_checkpoint(where, map_location=device)
+    """Load the actor and critic of checkpoint `where` (a file or a run directory) into this run's `actor` and
+    `critic` (the modules of fallkit.rl.models.make_actor and make_critic, as checkpoints save them); returns
+    the columns new to them and the loaded run's last actor learning rate (where the KL rule starts)."""
+    try:
+        ckpt = load_checkpoint(where, map_location=device)
+    except CheckpointError as exc:
+        raise CheckpointError(f"train.init_from: {exc}") from None
     path, saved = ckpt["path"], ckpt["config"]
     say = f"train.init_from: {path}"
     if ckpt["model_hash"] != spec.model_hash():
@@ -65,6 +71,8 @@ def start_from(where: str, actor: nn.Module, critic: nn.Module, config: FallkitC
         index = _column_map(layout(spec, *before), layout(spec, *after), f"{say}: the {name} observation")
         columns[name] = _load_net(net, ckpt["actor" if name == "policy" else "critic"], index, name, say)
     rate = float(ckpt["ppo"]["learning_rate"]) if "learning_rate" in ckpt.get("ppo", {}) else config.train.ppo.learning_rate
+    log.info("networks start from %s (iteration %d); observation columns new to them, at zero weight: %d of the "
+             "actor's, %d of the critic's", path, ckpt["iteration"], columns["policy"].numel(), columns["critic"].numel())  # fmt: skip
     return NewColumns(**columns), rate
 
 
