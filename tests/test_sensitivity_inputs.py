@@ -79,6 +79,40 @@ def test_draw_one_changes_one_component_per_episode_and_keeps_the_others(biped, 
     assert factor.min() >= 0.5 and factor.max() <= 4.0
 
 
+@pytest.mark.parametrize("draw", ["each", "one"])
+def test_only_the_named_components_are_drawn(biped, poses, draw):
+    names = biped.component_names
+    env = make_env(biped, poses, inputs(low=0.5, high=4.0, draw=draw, components=[names[0], names[-1]]), n=256)
+    env.reset()
+    changed = env.sensitivity / torch.as_tensor(biped.sensitivity, dtype=torch.float32) != 1.0
+    assert not changed[:, 1:-1].any()  # the others keep the robot's weights
+    assert changed[:, 0].sum() > 64 and changed[:, -1].sum() > 64
+    if draw == "one":
+        assert (changed.sum(dim=1) == 1).all()
+    else:
+        assert changed[:, [0, -1]].all()
+
+
+def test_components_that_are_not_the_robots_are_one_line_errors(biped, poses):
+    from fallkit.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"\['tail'\] are not components of this robot; its components are \["):
+        make_env(biped, poses, inputs(components=["head", "tail"]))
+    with pytest.raises(ValueError, match="at least 1 item"):
+        inputs(components=[])
+
+
+def test_the_export_says_which_weights_were_drawn(biped):
+    from fallkit.rl.export import _sensitivity_inputs
+
+    on = ["env.sensitivity_inputs.enabled=true", "env.sensitivity_inputs.low=0.5", "env.sensitivity_inputs.high=2"]
+    meta = _sensitivity_inputs(biped, composed_config(*on, "env.sensitivity_inputs.components=[head]"))
+    w = dict(zip(biped.component_names, biped.sensitivity.tolist()))
+    assert meta["trained_range"]["head"] == pytest.approx([w["head"] / 2, w["head"] * 2])
+    assert meta["trained_range"]["pelvis"] == pytest.approx([w["pelvis"]] * 2)  # a controller warns if it is set
+    assert "only ['head'] drawn" in meta["trained_draw"]
+
+
 def test_the_impact_reward_weighs_each_world_by_its_own_weights(biped, poses):
     """Every weight doubled (low = high = 2) quadruples the impact term on the same falls."""
     impact = []

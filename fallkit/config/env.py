@@ -132,6 +132,12 @@ class SensitivityInputs(Section):
         description="each: every component's factor is drawn; one: one component, chosen uniformly per episode, "
         "is drawn and the others keep the robot's weights (each episode then says what one weight changes)",
     )
+    components: list[str] | None = Field(
+        None,
+        min_length=1,
+        description="the components whose weights are drawn, and so can be set at run time (e.g. [head,battery]); "
+        "the others keep the robot's weights in training, their inputs constant; null = every component",
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> "SensitivityInputs":

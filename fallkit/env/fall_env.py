@@ -47,7 +47,7 @@ from fallkit.env.observations import (
     path_frame,
     planar_motion,
 )
-from fallkit.env.randomization import EpisodeRandomization, draw_sensitivity
+from fallkit.env.randomization import EpisodeRandomization, SensitivityDraw
 from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.env.rewards.tracking import blend
 from fallkit.poses.end_pose_set import EndPoseSet
@@ -249,7 +249,7 @@ class FallEnv(EnvBase):
         if self.disturbances is not None:
             self.disturbances.reset(mask, self._gen)
         self.randomization.reset(ids, self._gen)
-        drawn = draw_sensitivity(self.env_cfg.sensitivity_inputs, self.robot_sensitivity, len(ids), self._gen)
+        drawn = self.draw_sensitivity(len(ids), self._gen)
         if drawn is not None:
             self.sensitivity[ids] = drawn
 
@@ -301,8 +301,7 @@ class FallEnv(EnvBase):
         self.initial_states = load("fallkit.samplers", env_cfg.samplers["initial_state"])(
             spec, **env_cfg.initial_state.model_dump()
         )
-        dist = env_cfg.disturbances
-        self.disturbances = None
+        dist, self.disturbances = env_cfg.disturbances, None
         if dist.enabled:
             self.disturbances = load("fallkit.samplers", env_cfg.samplers["disturbances"])(
                 spec, self.num_envs, self.device, **dist.model_dump(exclude={"enabled"})
@@ -319,6 +318,7 @@ class FallEnv(EnvBase):
         limits = torch.as_tensor(spec.joint_limits, **f32)
         self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
         self.robot_sensitivity = torch.as_tensor(spec.sensitivity, **f32)  # [C]
+        self.draw_sensitivity = SensitivityDraw(self.env_cfg.sensitivity_inputs, spec, self.device)
         self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
         std = noise_std(spec, self.env_cfg.noise, self.observes_sensitivity, self.observes_gravity)
         noisy = std.nonzero()

@@ -13,7 +13,7 @@ enabled (so a run without randomisation draws exactly the numbers it drew before
   joint_damping every joint's viscous damping × a factor
   armature      every joint's armature × a factor
 
-and, with env.sensitivity_inputs, the components' sensitivity weights (`draw_sensitivity`).
+and, with env.sensitivity_inputs, the components' sensitivity weights (`SensitivityDraw`).
 
 Evaluation switches every one off (fallkit.eval.evaluate.eval_run_config), as it does noise
 and disturbances. Masses, damping and armature are per world on the MuJoCo C backend only
@@ -27,6 +27,8 @@ import math
 import torch
 
 from fallkit.config.env import RandomizationConfig, RandomRange, SensitivityInputs
+from fallkit.errors import ConfigError
+from fallkit.robots.spec import RobotSpec
 from fallkit.sim.base import BatchSim
 
 
@@ -109,19 +111,35 @@ def _uniform(r: RandomRange, k: int, generator: torch.Generator, device: torch.d
     return r.low + (r.high - r.low) * torch.rand(k, generator=generator, device=device)
 
 
-def draw_sensitivity(
-    config: SensitivityInputs, weights: torch.Tensor, k: int, generator: torch.Generator
-) -> torch.Tensor | None:
-    """Sensitivity weights [k, C] of k new episodes: the robot's weights [C] × factors log-uniform in
-    [low, high], per component (draw="one": for one component per episode; env.sensitivity_inputs); None where
-    nothing is drawn (low = high = 1 in evaluation, or the inputs off), so the worlds keep the weights they have."""
-    if not config.enabled or config.low == config.high == 1.0:
-        return None
-    lo, hi = math.log(config.low), math.log(config.high)
-    u = torch.rand(k, weights.shape[0], generator=generator, device=weights.device)
-    log_factor = lo + (hi - lo) * u
-    if config.draw == "one":  # one component per episode, the others at the robot's weights
-        pick = torch.randint(weights.shape[0], (k, 1), generator=generator, device=weights.device)
-        drawn = torch.zeros_like(log_factor, dtype=torch.bool).scatter_(1, pick, True)
-        log_factor = torch.where(drawn, log_factor, 0.0)
-    return weights * torch.exp(log_factor)
+class SensitivityDraw:
+    """The sensitivity weights [k, C] of k new episodes (env.sensitivity_inputs), on `device`: the robot's
+    weights × factors log-uniform in [low, high] for the components drawn (`components`; null: all of them),
+    the others at the robot's weights; draw="one": one of the drawn components per episode. Calling it gives
+    None where nothing is drawn (low = high = 1 in evaluation, or the inputs off), so the worlds keep the
+    weights they have."""
+
+    def __init__(self, config: SensitivityInputs, spec: RobotSpec, device: torch.device | str = "cpu"):
+        names = spec.component_names
+        unknown = [c for c in config.components or () if c not in names]
+        if unknown:
+            raise ConfigError(f"env.sensitivity_inputs.components: {unknown} are not components of this robot; "
+                              f"its components are {list(names)}")  # fmt: skip
+        self.config, self.weights = config, torch.as_tensor(spec.sensitivity, dtype=torch.float32, device=device)
+        drawn = [config.components is None or name in config.components for name in names]
+        self.drawn = torch.tensor(drawn, device=device)  # [C]
+        self.drawn_ids = torch.tensor([i for i, d in enumerate(drawn) if d], device=device)
+        self.active = config.enabled and not config.low == config.high == 1.0
+
+    def __call__(self, k: int, generator: torch.Generator | None) -> torch.Tensor | None:
+        if not self.active:
+            return None
+        lo, hi = math.log(self.config.low), math.log(self.config.high)
+        u = torch.rand(k, self.weights.shape[0], generator=generator, device=self.weights.device)
+        log_factor = lo + (hi - lo) * u
+        if self.config.draw == "one":  # one drawn component per episode, the others at the robot's weights
+            pick = torch.randint(len(self.drawn_ids), (k, 1), generator=generator, device=self.weights.device)
+            one = torch.zeros_like(log_factor, dtype=torch.bool).scatter_(1, self.drawn_ids[pick], True)
+            log_factor = torch.where(one, log_factor, 0.0)
+        elif self.config.components is not None:
+            log_factor = torch.where(self.drawn, log_factor, 0.0)
+        return self.weights * torch.exp(log_factor)

@@ -8,7 +8,7 @@ nothing in the physics: they only price the contact forces, and the environment 
 component's priced peak as a reward column of its own, weight·dt·(−(w_c ‖f_c‖∞)²). So a collected
 rollout is as well a rollout under any other weights w': the same states and actions, ln w' in the
 observations, each component's impact column times (w'_c / w_c)². `SensitivityRelabel` makes that
-copy, w' drawn per world as the env draws an episode's weights (`draw_sensitivity`), one draw for
+copy, w' drawn per world as the env draws an episode's weights (`SensitivityDraw`), one draw for
 the world's whole rollout; PPO (`train.ppo.relabel_sensitivity`) runs GAE on it with the critic
 reading w' and trains on both, so every minibatch holds the same actions priced two ways: the
 contrast that says what a weight input means.
@@ -31,7 +31,7 @@ from torchrl.modules import ProbabilisticActor
 
 from fallkit.config.env import SensitivityInputs
 from fallkit.env.observations import actor_slices, sensitivity_input
-from fallkit.env.randomization import draw_sensitivity
+from fallkit.env.randomization import SensitivityDraw
 from fallkit.env.rewards.context import RewardSum
 from fallkit.env.rewards.impact import impact
 from fallkit.env.rewards.tracking import blend, joints, orientation
@@ -65,8 +65,7 @@ class SensitivityRelabel:
                 "train.ppo.relabel_sensitivity reprices the built-in impact term, −(w_c ‖f_c‖∞)² per component; "
                 "this run's reward has no such term (reward.impact=0 or reward.terms.impact replaced): switch it off"
             )
-        self.inputs = inputs
-        self.robot_weights = torch.as_tensor(spec.sensitivity, dtype=torch.float32)  # [C], drawn from on the CPU
+        self.draw = SensitivityDraw(inputs, spec)  # on the CPU
         self.columns = actor_slices(spec, sensitivity=True, gravity=gravity)["sensitivity"]
         term = rewards.names.index("impact")
         self.impact_columns = torch.nonzero(rewards.column_term.cpu() == term).squeeze(-1)  # [C], component order
@@ -76,7 +75,7 @@ class SensitivityRelabel:
         "reward_terms"); every other key as it is) under weights drawn per world."""
         observed = batch["policy"][..., self.columns]  # [N, T, C]: ln w of each step's episode
         device = observed.device
-        drawn = draw_sensitivity(self.inputs, self.robot_weights, batch.shape[0], generator)  # [N, C]
+        drawn = self.draw(batch.shape[0], generator)  # [N, C]
         new = sensitivity_input(drawn).to(device).unsqueeze(1)  # [N, 1, C]: ln w', the world's whole rollout
         price = torch.exp(2.0 * (new - observed))  # (w' / w)² per step and component
         terms = batch["next", "reward_terms"].clone()
