@@ -212,3 +212,15 @@ def test_a_weight_outside_the_trained_range_is_used_with_a_warning(conditioned, 
     controller.set_sensitivity({"head": 100.0})
     assert controller.sensitivity["head"] == 100.0
     assert "outside the range the policy was trained on [0.8, 20]" in caplog.text
+
+
+def test_evaluating_with_a_weight_that_was_never_drawn_warns(tmp_path, caplog):
+    from fallkit.eval.evaluate import prepare
+    from fallkit.rl.trainer import Trainer
+
+    on = ["env.sensitivity_inputs.enabled=true", "env.sensitivity_inputs.components=[head]", "train.iterations=1"]
+    Trainer(composed_config(*TINY, *on), tmp_path / "run").run()
+    prepare(composed_config(f"checkpoint={tmp_path / 'run'}", "mode=eval", "robot.sensitivity.head=9"))
+    assert "never saw" not in caplog.text  # the head's weight was drawn in training
+    prepare(composed_config(f"checkpoint={tmp_path / 'run'}", "mode=eval", "robot.sensitivity.pelvis=3"))
+    assert "trained with only ['head'] drawn" in caplog.text and "another weight of ['pelvis']" in caplog.text

@@ -120,6 +120,11 @@ def _evaluated_robot(trained: FallkitConfig, config: FallkitConfig) -> RobotConf
     if changed:
         log.info("the policy observes sensitivity weights: evaluating with %s (trained around %s)", changed,
                  {k: trained.robot.sensitivity.get(k) for k in changed})  # fmt: skip
+    drawn = trained.env.sensitivity_inputs.components
+    fixed = sorted(k for k in changed if drawn is not None and k not in drawn)
+    if fixed:
+        log.warning("the policy was trained with only %s drawn (env.sensitivity_inputs.components): it never saw "
+                    "another weight of %s, so what it does with one is untested", drawn, fixed)  # fmt: skip
     return trained.robot.model_copy(update={"sensitivity": weights})
 
 
