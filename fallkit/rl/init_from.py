@@ -3,13 +3,14 @@
 `resume=` continues a run exactly (its config, optimizer, envs, iteration). `init_from` starts a new run —
 its own config, envs, optimizer moments and iteration 0 — from another run's actor and critic: their
 weights, observation statistics and action std. The use: teaching a policy that already falls softly one
-more thing without paying again for what it knows, e.g. to read sensitivity inputs
-(`env.sensitivity_inputs.enabled=true`, docs/sensitivity_inputs.md), where a policy trained from scratch
-spends its budget learning to soften falls in general before it reads six extra inputs.
+more thing without paying again for what it knows, or training on with other settings. Tried for sensitivity
+inputs (`env.sensitivity_inputs.enabled=true`), where a policy trained from scratch spends its budget learning
+to soften falls before it reads six extra inputs: started from a policy that falls softly it did not read them
+sooner (docs/sensitivity_inputs.md).
 
 Observation columns are matched by part name (fallkit.env.observations: actor_layout, critic_layout), so
 the new run may observe more than the loaded one did: the first layer's weights from a part the loaded
-policy did not observe start at zero — the new run's first actions are the loaded policy's, bit for bit —
+policy did not observe start at zero — the new run's first actions are the loaded policy's, to rounding —
 and those columns' running statistics are set from the run's first observations (`fresh_statistics`). What
 would change what the loaded weights mean is refused with one line: another robot model, other network
 sizes or value heads, another prior or action scale, or a part the loaded policy observed and this run
