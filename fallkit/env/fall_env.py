@@ -317,8 +317,7 @@ class FallEnv(EnvBase):
         self.nominal = torch.as_tensor(spec.nominal_q(), **f32)
         limits = torch.as_tensor(spec.joint_limits, **f32)
         self._q_lo, self._q_hi = limits[:, 0], limits[:, 1]
-        self.robot_sensitivity = torch.as_tensor(spec.sensitivity, **f32)  # [C]
-        self.draw_sensitivity = SensitivityDraw(self.env_cfg.sensitivity_inputs, spec, self.device)
+        self.draw_sensitivity = SensitivityDraw(self.env_cfg.sensitivity_inputs, spec, self.device)  # .weights: [C]
         self._goal_tilt = tilt_quat(self.end_poses.root_quat.to(torch.float32))  # [P, 4]
         std = noise_std(spec, self.env_cfg.noise, self.observes_sensitivity, self.observes_gravity)
         noisy = std.nonzero()
@@ -339,7 +338,7 @@ class FallEnv(EnvBase):
         self._motion = torch.zeros(n, 4, 3, nb, **f32)  # body velocity, acceleration (planar_motion layout)
         self._reward_terms = torch.zeros(n, len(self.rewards.columns), **f32)
         # [N, C] w_c of every world: the robot's, or drawn per episode with env.sensitivity_inputs
-        self.sensitivity = self.robot_sensitivity.expand(n, -1).clone()
+        self.sensitivity = self.draw_sensitivity.weights.expand(n, -1).clone()
         self._all = torch.ones(n, dtype=torch.bool, device=dev)
         self._no = torch.zeros(n, 1, dtype=torch.bool, device=dev)
 
