@@ -95,6 +95,19 @@ def test_controller_equals_env_and_policy_over_full_falls_biped20(tmp_path, opti
     assert len(json.loads((export / "end_poses.json").read_text())) == 10  # biped20's artist poses, settled
 
 
+def test_export_records_the_checkpoint_as_an_absolute_path(tmp_path, monkeypatch):
+    """checkpoint=<relative path>: policy.json still says which file the policy came from, from anywhere."""
+    from fallkit.rl.export import run_export
+
+    run, _ = exported(tmp_path, "robot=biped20")
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "export_relative"
+    out.mkdir()
+    run_export(config(*TINY, "robot=biped20", "checkpoint=run", "mode=export"), out)
+    recorded = Path(json.loads((out / "policy.json").read_text())["checkpoint"])
+    assert recorded.is_absolute() and recorded.parent.parent == run.resolve()
+
+
 def test_controller_equals_env_and_policy_over_full_falls_go1(tmp_path):
     pytest.importorskip("fallkit_go1", reason="install plugins/fallkit-go1 (scripts/setup.sh does)")
     from fallkit.api import get_robot

@@ -51,7 +51,7 @@ def run_export(config: FallkitConfig, run_dir: Path) -> Path:
     meta = {
         "robot": spec.name,
         "model_hash": spec.model_hash(),
-        "checkpoint": str(policy.path),
+        "checkpoint": str(policy.path.resolve()),  # where the policy came from, whatever the export's cwd
         "iteration": policy.iteration,
         "policy_hz": spec.policy_hz,
         "physics_timestep": spec.timestep,
