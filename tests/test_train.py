@@ -128,8 +128,10 @@ import torch.distributed as dist
 from fallkit.rl.ranks import any_over_ranks
 dist.init_process_group("gloo")
 rank = dist.get_rank()
-# rank 1 alone ran out of time, rank 0 alone diverged; nobody was signalled
-print(json.dumps({"rank": rank, "agreed": any_over_ranks((False, rank == 1, rank == 0))}), flush=True)
+# rank 1 alone ran out of time, rank 0 alone diverged; nobody was signalled. A file per rank: two ranks
+# printing to the one stdout torchrun forwards can interleave their lines ('{...}{...}' was seen in CI)
+with open(f"rank{rank}.json", "w") as f:
+    json.dump({"rank": rank, "agreed": any_over_ranks((False, rank == 1, rank == 0))}, f)
 dist.destroy_process_group()
 """
 
@@ -146,7 +148,7 @@ def test_ranks_stop_together_whichever_rank_decided(tmp_path):
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
-    lines = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+    lines = [json.loads(p.read_text()) for p in sorted(tmp_path.glob("rank*.json"))]
     assert sorted(d["rank"] for d in lines) == [0, 1]
     assert all(d["agreed"] == [False, True, True] for d in lines)
 
