@@ -91,15 +91,15 @@ def _sensitivity_inputs(spec, config: FallkitConfig) -> dict:
     """The sensitivity inputs of a policy trained with env.sensitivity_inputs: components, their defaults
     (the training robot's weights), the range the policy saw, and how the weights become inputs."""
     r = config.env.sensitivity_inputs
-    drawn, weights = r.components or spec.component_names, zip(spec.component_names, spec.sensitivity.tolist())
+    drawn, defaults = r.components or spec.component_names, dict(zip(spec.component_names, spec.sensitivity.tolist()))
     how = {"each": "every component per episode",
            "one": "one component per episode, the others at their defaults"}[r.draw]  # fmt: skip
     if r.components is not None:
         how += f"; only {r.components} drawn, the others fixed at their defaults"
     return {
         "components": spec.component_names,
-        "defaults": dict(zip(spec.component_names, spec.sensitivity.tolist())),
-        "trained_range": {c: [w * r.low, w * r.high] if c in drawn else [w, w] for c, w in weights},
+        "defaults": defaults,
+        "trained_range": {c: [w * r.low, w * r.high] if c in drawn else [w, w] for c, w in defaults.items()},
         "trained_draw": how,
         "formula": f"observation 'sensitivity' = ln(max(w_c, {MIN_SENSITIVITY:g})) per component, in this order",
     }
