@@ -243,6 +243,35 @@ def test_end_poses_by_name_or_index_and_one_line_errors(session):
     assert not session.observes_sensitivity()  # no policy observes weights yet: the sliders stay hidden
 
 
+def test_a_fall_left_to_choose_its_end_pose_steers_toward_the_pose_mode_eval_would_choose(session):
+    from fallkit.errors import ConfigError
+    from fallkit.eval.choice import choose_end_poses
+    from fallkit.play.session import FallStart, PlaySession
+
+    with pytest.raises(ConfigError, match="choosing the end pose for the fall needs eval.poses=auto"):
+        session.run(FallStart(pose_id=0, seed=1, choose=True), lambda f: None)
+    auto = PlaySession(composed_config("mode=play", f"eval.seconds={SECONDS}", "eval.poses=auto", "eval.scorer=heading",
+                                       "eval.candidate_side=[left,right]"))  # fmt: skip
+    assert auto.choice is not None and auto.choice.scorer == "heading"
+    told = []
+    for start in (FallStart(pose_id=0, seed=s, choose=True) for s in range(4)):
+        result = auto.run(start, lambda f: None, told.append)
+        trials = auto.random_trials(start)
+        chosen = choose_end_poses(auto.env, trials, auto.choice)
+        assert result.pose_id == int(chosen.pose_ids[0]) == told[-1]
+        expected = evaluate(auto.env, chosen, auto.strategies, None, show_progress=False)
+        for s in auto.strategies:
+            for k in METRIC_KEYS:
+                assert float(getattr(result.metrics[s], k)[0]) == float(getattr(expected[s], k)[0]), (s, k)
+    # the candidates are the play poses lying on the sides asked for; a push is chosen for after the push
+    assert len(auto.poses) < 10 and set(auto.poses.names) <= set(session.poses.names)
+    pushed = auto.run(FallStart(pose_id=0, push=40.0, direction=90.0, choose=True), lambda f: None)
+    after_push = choose_end_poses(auto.env, auto.push_trials(FallStart(pose_id=0, push=40.0, direction=90.0)), auto.choice)
+    assert pushed.pose_id == int(after_push.pose_ids[0])
+    by_hand = auto.run(FallStart(pose_id=1, seed=0), lambda f: None)
+    assert by_hand.pose_id == 1
+
+
 def test_the_scene_sends_mujocos_poses_and_one_arrow_per_component_in_contact(session):
     """What the browser is sent for a frame: geom poses from MuJoCo, side by side; the ghost at each
     robot; an arrow per component in contact, as long as its force says."""

@@ -53,6 +53,10 @@ class Panel:
                 self.pose = gui.add_dropdown("end pose", names, initial_value=names[start])
             else:
                 self.pose = gui.add_number("end pose #", start, min=0, max=len(names) - 1, step=1)
+            self.choose = None  # eval.poses=auto: leave the end pose to the fall
+            if session.choice is not None:
+                self.choose = gui.add_checkbox("choose for the fall", True,
+                                               hint=f"eval.poses=auto, {session.choice.describe()}")  # fmt: skip
             self.seed = gui.add_number("seed", config.eval.seed, step=1, hint="initial state of the next random fall")
             self.random = gui.add_button("Random fall", hint="an initial falling state of paper Table II from the seed")
             self.push_size = gui.add_slider("push [N·s]", 0.0, 100.0, 1.0, play.push)
@@ -150,4 +154,4 @@ def metrics_html(result: FallResult, strategies: list[str], pose: str, seconds: 
     caption = f"Fall {result.number}: {result.start.describe()}, end pose {pose}, {seconds:.2f} s"
     return (f'<div style="font-size:0.85em;font-weight:600">{html.escape(caption)}</div>'
             f'<table id="fallkit-metrics" data-fall="{result.number}" data-seed="{result.start.seed}" '
-            f'data-pose="{result.start.pose_id}" style="{_TABLE}">{_FIRST}<tr><th></th>{head}</tr>{"".join(rows)}</table>{note}')  # fmt: skip
+            f'data-pose="{result.pose_id}" style="{_TABLE}">{_FIRST}<tr><th></th>{head}</tr>{"".join(rows)}</table>{note}')  # fmt: skip

@@ -98,13 +98,23 @@ class Player:
 
     def _fall(self, start: FallStart) -> None:
         s = self.session
-        number, pose = s.falls + 1, s.pose_label(start.pose_id)
-        self.panel.set_status("running", f"fall {number}: {start.describe()}, end pose {pose} …", number)
+        number = s.falls + 1
         self.panel.replay.disabled = True
         self.panel.show_peaks(np.zeros((len(s.strategies), len(s.spec.components))))
-        self.show_ghost(start.pose_id)
+
+        def steering_toward(pose_id: int) -> None:  # known after a push; chosen for the fall with start.choose
+            how = f"chosen by {s.choice.scorer}: " if start.choose else ""
+            text = f"fall {number}: {start.describe()}, end pose {how}{s.pose_label(pose_id)} …"
+            self.panel.set_status("running", text, number)
+            self.show_ghost(pose_id)
+
+        if start.choose:
+            self.panel.set_status("running", f"fall {number}: {start.describe()}, end pose chosen as it begins …", number)
+        else:
+            steering_toward(start.pose_id)
         self._begin()
-        result = s.run(start, self._show)
+        result = s.run(start, self._show, steering_toward if start.choose else None)
+        pose = s.pose_label(result.pose_id)
         self._finish(result.frames[-1])
         self.last = result
         self.panel.show_metrics(result, pose)
@@ -117,7 +127,7 @@ class Player:
             return
         n = self.last.number
         self.panel.set_status("running", f"replaying fall {n} …", n)
-        self.show_ghost(self.last.start.pose_id)
+        self.show_ghost(self.last.pose_id)
         self._begin()
         for frame in self.last.frames:
             self._show(frame)
@@ -220,12 +230,14 @@ def _wire(player: Player, panel: Panel, scene: FallScene, session: PlaySession) 
         except FallkitError as exc:
             panel.set_status("error", str(exc))
             return
+        choose = panel.choose is not None and bool(panel.choose.value)
         if push:
-            player.request(FallStart(pose, push=float(panel.push_size.value), direction=float(panel.push_direction.value)))
+            size, toward = float(panel.push_size.value), float(panel.push_direction.value)
+            player.request(FallStart(pose, push=size, direction=toward, choose=choose))
         else:
             seed = int(panel.seed.value)
             panel.seed.value = seed + 1  # the next click falls from a new state; type a seed to see one again
-            player.request(FallStart(pose, seed=seed))
+            player.request(FallStart(pose, seed=seed, choose=choose))
 
     def pose_changed() -> None:
         try:

@@ -8,6 +8,10 @@ rollout's traces: for the same initial state and end pose they are exactly what 
 computes (tests/test_play.py checks it through the browser). Nothing here draws: every step
 becomes a `Frame` handed to a callback (fallkit.play.scene draws it, fallkit.play.server paces it).
 
+With `eval.poses=auto` the page can leave the end pose to the fall: chosen from the poses shown
+(restricted by `eval.candidate_side`) by `eval.scorer` at the fall's first state, as mode=eval and
+mode=render choose it (`fallkit.eval.choice.choose_end_poses`).
+
 Two ways a fall starts:
 - random: the initial state of `draw_trials(env, 1, seed)` (paper Table II through the run's
   registered sampler), i.e. the first fall of `mode=eval eval.seed=<seed>`;
@@ -27,6 +31,7 @@ import torch
 
 from fallkit.config import FallkitConfig, validate
 from fallkit.errors import ConfigError, PoseFileError
+from fallkit.eval.choice import choose_end_poses
 from fallkit.eval.evaluate import EvalSetup, make_eval_env, prepare
 from fallkit.eval.metrics import TrialMetrics, trial_metrics
 from fallkit.eval.rollout import POLICY, SEEK, Trials, draw_trials, rollout
@@ -48,6 +53,7 @@ class FallStart:
     seed: int | None = None  # random initial state: draw_trials(env, 1, seed)
     push: float | None = None  # [N·s] impulse on the standing robot's root body
     direction: float = 0.0  # [deg] of the push: 0 = the robot's front (+x), 90 = its left (+y)
+    choose: bool = False  # eval.poses=auto: the end pose chosen for the fall at its first state (pose_id unused)
 
     def describe(self) -> str:
         if self.push is not None:
@@ -72,6 +78,7 @@ class FallResult:
 
     number: int
     start: FallStart
+    pose_id: int  # the end pose the fall steered toward: start.pose_id, or the one chosen for it
     metrics: dict[str, TrialMetrics]  # one trial each, as mode=eval's per-trial figures
     frames: list[Frame] = field(default_factory=list)
 
@@ -93,6 +100,7 @@ class PlaySession:
         model = self.spec.mj_model()
         self.weight = float(model.body_subtreemass[0] * -model.opt.gravity[2])  # world subtree: the whole robot
         self._checker = PoseChecker(self.spec, chunk=1, threads=1)
+        self.choice = self.setup.choice  # eval.poses=auto: how a fall's end pose is chosen (None: only by hand)
         self.falls = 0
 
     # ---- end poses ---------------------------------------------------------------------
@@ -130,12 +138,17 @@ class PlaySession:
 
     # ---- falls -------------------------------------------------------------------------
 
-    def run(self, start: FallStart, on_frame: Callable[[Frame], None]) -> FallResult:
-        """One paired fall of every strategy from `start`; every step goes to `on_frame` as it happens.
+    def run(self, start: FallStart, on_frame: Callable[[Frame], None],
+            on_pose: Callable[[int], None] | None = None) -> FallResult:  # fmt: skip
+        """One paired fall of every strategy from `start`; every step goes to `on_frame` as it happens, and
+        the end pose it steers toward to `on_pose` once known (after the push; chosen with start.choose).
 
         An exception raised by on_frame (a newer request in the browser) ends the fall there.
         """
         self.pose_id(start.pose_id, "pose")  # range check
+        if start.choose and self.choice is None:
+            raise ConfigError("choosing the end pose for the fall needs eval.poses=auto on the command line "
+                              "(eval.scorer=heading, or critic with a checkpoint)")  # fmt: skip
         frames: list[Frame] = []
 
         def emit(frame: Frame) -> None:
@@ -143,6 +156,11 @@ class PlaySession:
             on_frame(frame)
 
         trials = self.push_trials(start, emit) if start.push is not None else self.random_trials(start)
+        if start.choose:
+            trials = choose_end_poses(self.env, trials, self.choice)
+        pose_id = int(trials.pose_ids[0])
+        if on_pose is not None:
+            on_pose(pose_id)
         env, w, c = self.env, self.env.num_envs, len(self.spec.components)
         peak = torch.zeros(w, c)
         emit(Frame(0.0, trials.qpos.expand(w, -1).numpy().copy(), np.zeros((w, c, 3)), peak.numpy().copy()))
@@ -156,7 +174,7 @@ class PlaySession:
         out = rollout(env, trials, self.strategies, self.setup.policy, on_step=on_step)
         self.falls += 1
         metrics = {s: trial_metrics(out.traces[s], env.dt) for s in self.strategies}
-        return FallResult(self.falls, start, metrics, frames)
+        return FallResult(self.falls, start, pose_id, metrics, frames)
 
     def random_trials(self, start: FallStart) -> Trials:
         """The initial state mode=eval draws first from seed `start.seed`, toward the chosen pose."""
