@@ -93,17 +93,6 @@ def test_only_the_named_components_are_drawn(biped, poses, draw):
         assert changed[:, [0, -1]].all()
 
 
-def test_spread_ends_draws_only_the_two_ends_of_the_range_about_evenly(biped, poses):
-    env = make_env(biped, poses, inputs(low=1.0, high=4.0, components=["head"], spread="ends"), n=256)
-    env.reset()
-    factor = env.sensitivity / torch.as_tensor(biped.sensitivity, dtype=torch.float32)
-    head = biped.component_names.index("head")
-    torch.testing.assert_close(factor[:, head].unique(), torch.tensor([1.0, 4.0]))
-    assert 64 < (factor[:, head] == 4.0).sum() < 192
-    others = [i for i in range(len(biped.components)) if i != head]
-    assert (factor[:, others] == 1.0).all()
-
-
 def test_components_that_are_not_the_robots_are_one_line_errors(biped, poses):
     from fallkit.errors import ConfigError
 

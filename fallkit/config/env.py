@@ -138,12 +138,6 @@ class SensitivityInputs(Section):
         description="the components whose weights are drawn, and so can be set at run time (e.g. [head,battery]); "
         "the others keep the robot's weights in training, their inputs constant; null = every component",
     )
-    spread: Literal["log_uniform", "ends"] = Field(
-        "log_uniform",
-        description="log_uniform: ln f_c uniform in [ln low, ln high]; ends: f_c is low or high, each with "
-        "probability 1/2 — a policy for two settings (e.g. the robot's weights and a damaged head at 4x) trained on "
-        "exactly those, weights in between interpolated",
-    )
 
     @model_validator(mode="after")
     def _ordered(self) -> "SensitivityInputs":

@@ -113,9 +113,8 @@ def _uniform(r: RandomRange, k: int, generator: torch.Generator, device: torch.d
 
 class SensitivityDraw:
     """The sensitivity weights [k, C] of k new episodes (env.sensitivity_inputs), on `device`: the robot's
-    weights × factors log-uniform in [low, high] (spread="ends": low or high) for the components drawn
-    (`components`; null: all of them), the others at the robot's weights; draw="one": one of the drawn
-    components per episode. Calling it gives
+    weights × factors log-uniform in [low, high] for the components drawn (`components`; null: all of them),
+    the others at the robot's weights; draw="one": one of the drawn components per episode. Calling it gives
     None where nothing is drawn (low = high = 1 in evaluation, or the inputs off), so the worlds keep the
     weights they have."""
 
@@ -136,8 +135,7 @@ class SensitivityDraw:
             return None
         lo, hi = math.log(self.config.low), math.log(self.config.high)
         u = torch.rand(k, self.weights.shape[0], generator=generator, device=self.weights.device)
-        # ends: only the range's two ends, so no episode is spent on the settings between them
-        log_factor = torch.where(u < 0.5, lo, hi) if self.config.spread == "ends" else lo + (hi - lo) * u
+        log_factor = lo + (hi - lo) * u
         if self.config.draw == "one":  # one drawn component per episode, the others at the robot's weights
             pick = torch.randint(len(self.drawn_ids), (k, 1), generator=generator, device=self.weights.device)
             one = torch.zeros_like(log_factor, dtype=torch.bool).scatter_(1, self.drawn_ids[pick], True)
