@@ -31,7 +31,7 @@ import torch
 
 from fallkit.config import FallkitConfig, validate
 from fallkit.errors import ConfigError, PoseFileError
-from fallkit.eval.choice import choose_end_poses
+from fallkit.eval.choice import PoseChoice, choose_end_poses
 from fallkit.eval.evaluate import EvalSetup, make_eval_env, prepare
 from fallkit.eval.metrics import TrialMetrics, trial_metrics
 from fallkit.eval.rollout import POLICY, SEEK, Trials, draw_trials, rollout
@@ -100,10 +100,14 @@ class PlaySession:
         model = self.spec.mj_model()
         self.weight = float(model.body_subtreemass[0] * -model.opt.gravity[2])  # world subtree: the whole robot
         self._checker = PoseChecker(self.spec, chunk=1, threads=1)
-        self.choice = self.setup.choice  # eval.poses=auto: how a fall's end pose is chosen (None: only by hand)
         self.falls = 0
 
     # ---- end poses ---------------------------------------------------------------------
+
+    @property
+    def choice(self) -> PoseChoice | None:
+        """How a fall's end pose is chosen with eval.poses=auto (None: only by hand in the page)."""
+        return self.setup.choice
 
     def pose_label(self, i: int) -> str:
         return self.poses.names[i] if self.poses.names else f"#{i}"
