@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 import yaml
 from helpers import fallkit_cli
@@ -64,6 +68,19 @@ def test_cli_bad_value_is_one_line(tmp_path):
     r = fallkit_cli("mode=eval", "sim.num_envs=-1", cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == ["fallkit: error: sim.num_envs: Input should be greater than 0 (got -1)"]
+
+
+def test_a_config_error_answers_before_torch_is_imported(tmp_path):
+    """Composition, validation and the robot registry import no torch (2-3 s on a small CPU): a typo is
+    answered in about 2 s instead of 5. A top-level torch import on that path fails here."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    r = subprocess.run([sys.executable, "-X", "importtime", "-m", "fallkit", "robot=go1", "sim.num_envs=-1"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == "fallkit: error: sim.num_envs: Input should be greater than 0 (got -1)"
+    imported = {line.rsplit("|", 1)[-1].strip() for line in r.stderr.splitlines() if line.startswith("import time:")}
+    assert "fallkit.robots" in imported  # the robot registry ran (robot=go1: a plugin's URDF robot)
+    assert not {m for m in imported if m == "torch" or m.startswith("torch.")}, "torch imported before a mode ran"
 
 
 def test_cli_list_shows_distributions(tmp_path):

@@ -78,3 +78,21 @@ def test_duplicate_name_is_an_error_naming_both(with_plugin):
     assert "registered 2 times" in msg and "'fallkit'" in msg and "'fallkit-testplugins'" in msg
     # other names stay usable
     assert get_robot("biped20_battery").name == "biped20_battery"
+
+
+def test_every_name_of_the_plugin_api_resolves_and_type_checkers_see_the_same_imports():
+    """fallkit.api imports its names on first use: each name in __all__ must resolve, and the TYPE_CHECKING
+    imports that editors read must name the same modules and names as the lazy table."""
+    import ast
+    import inspect
+
+    import fallkit.api as api
+
+    for name in api.__all__:
+        assert getattr(api, name) is not None, name
+    tree = ast.parse(inspect.getsource(api))
+    block = next(n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", "") == "TYPE_CHECKING")
+    seen = {i.module: tuple(a.name for a in i.names) for i in block.body if isinstance(i, ast.ImportFrom)}
+    assert seen == api._LAZY
+    with pytest.raises(AttributeError, match="no attribute 'nosuch'"):
+        api.nosuch  # noqa: B018

@@ -28,12 +28,12 @@ x'[i] = sign[i] · x[perm[i]]; every map here is an involution (applying it twic
 from __future__ import annotations
 
 import re
+import sys
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import mujoco
 import numpy as np
-import torch
 
 
 class RobotSpec(Protocol):
@@ -89,8 +89,11 @@ class MirrorMap:
 
 
 def signed_permute(x, perm: np.ndarray, sign: np.ndarray):
-    """x'[..., i] = sign[i] · x[..., perm[i]], for numpy arrays and torch tensors alike."""
-    if isinstance(x, torch.Tensor):
+    """x'[..., i] = sign[i] · x[..., perm[i]], for numpy arrays and torch tensors alike. torch is looked up,
+    not imported: a tensor exists only once torch is loaded, and the robot registry (hence `mode=list` and
+    every config error) then starts without torch's 2-3 s import."""
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(x, torch.Tensor):
         return x[..., torch.as_tensor(perm, device=x.device)] * torch.as_tensor(sign, dtype=x.dtype, device=x.device)
     return np.asarray(x)[..., perm] * sign
 
