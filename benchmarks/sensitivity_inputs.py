@@ -17,8 +17,9 @@ weight is 4x, when every weight is 4x, and — for scale — when the end pose i
 to the deviation's size, averaged over the fall.
 
     python benchmarks/sensitivity_inputs.py [--out runs/sensitivity_inputs] [--checkpoint RUN]
-        [--unconditioned RUN]   # e.g. experiments/battery/<time>/1_biped20_battery_baseline: the cost of
-                                # conditioning at the default weights, against a policy of the same budget
+        [--unconditioned RUN]   # e.g. experiments/battery/<time>/1_biped20_battery_baseline, evaluated here on
+                                # the same falls: the cost of conditioning at the default weights against a
+                                # policy of the same budget, and the head at 4x against it at 1x
         [--weighted RUN]        # e.g. experiments/battery/<time>/0_biped20_battery: the battery-5.0 policy
         [--poses FILE]          # pin the end-pose dataset (evaluations read the checkpoint's env.poses)
         [--minutes M]           # a wall-clock budget instead of 450 iterations
@@ -102,6 +103,8 @@ def p95_reduction_interval(default: Path, changed: Path, component: str = "head"
     """95 % bootstrap interval of 1 - p95(changed) / p95(default) of one component's max force, the same falls
     resampled in pairs; falls unstable in either evaluation are left out, as eval.json leaves them out."""
     a, b = np.load(default / "eval_trials.npz"), np.load(changed / "eval_trials.npz")
+    if not np.array_equal(a["freeze/max_impact_force"], b["freeze/max_impact_force"]):  # a strategy: the falls
+        sys.exit(f"sensitivity_inputs: {default} and {changed} did not evaluate the same falls (another dataset?)")
     c = list(a["components"]).index(component)
     ok = ~(a["policy/unstable"] | b["policy/unstable"])
     x, y = a["policy/component_max_force"][ok, c], b["policy/component_max_force"][ok, c]
@@ -166,12 +169,17 @@ def main() -> None:
         "reading": reading(run),
         "evaluations": results,
     }
-    for key, other in (("unconditioned", args.unconditioned), ("weighted", args.weighted)):
-        if other:
-            report[key] = summary(Path(other) / "eval.json")
-    if args.unconditioned:
-        u = report["unconditioned"]
+    if args.weighted:
+        report["weighted"] = summary(Path(args.weighted) / "eval.json")
+    if args.unconditioned:  # evaluated here on the same falls, so both comparisons are paired
+        where = out / "eval_unconditioned"
+        fallkit("mode=eval", ROBOT, f"checkpoint={args.unconditioned}", f"eval.trials={args.trials}", f"hydra.run.dir={where}")
+        report["unconditioned"] = u = summary(where / "eval.json")
         report["cost_at_default"] = {m: round(d[m] / u[m], 3) for m in ("mje", "mroe", "max_impact")}
+        # the head at 4x against the policy trained at the robot's weights, at those weights (not the target's
+        # comparison, which stays within the conditioned policy; see docs/sensitivity_inputs.md)
+        report["head_p95_4x_vs_unconditioned"] = round(1.0 - head["head_p95"] / u["head_p95"], 3)
+        report["head_p95_4x_vs_unconditioned_ci95"] = p95_reduction_interval(where, out / "eval_head_4x")
     print(json.dumps(report))
 
 
