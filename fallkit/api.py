@@ -26,7 +26,7 @@ from fallkit import registry
 from fallkit.errors import PluginError, RobotSpecError, URDFError
 
 # Where each re-exported name lives. They are imported on first use (PEP 562's module __getattr__), so a
-# robot plugin that needs only make_robot_spec or robot_from_urdf loads without torch: `mode=list`, `--help`
+# robot plugin that needs only make_robot_spec or robot_from_urdf loads without torch: robot lookups, `--help`
 # and every config error answer in about 2 s instead of 5. `from fallkit.api import X` works as before; the
 # same imports under TYPE_CHECKING serve type checkers and editors (tests/test_registry.py keeps the two equal).
 _LAZY: dict[str, tuple[str, ...]] = {

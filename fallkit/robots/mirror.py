@@ -90,8 +90,8 @@ class MirrorMap:
 
 def signed_permute(x, perm: np.ndarray, sign: np.ndarray):
     """x'[..., i] = sign[i] · x[..., perm[i]], for numpy arrays and torch tensors alike. torch is looked up,
-    not imported: a tensor exists only once torch is loaded, and the robot registry (hence `mode=list` and
-    every config error) then starts without torch's 2-3 s import."""
+    not imported: a tensor exists only once torch is loaded, and the robot registry (hence every config error)
+    then starts without torch's 2-3 s import."""
     torch = sys.modules.get("torch")
     if torch is not None and isinstance(x, torch.Tensor):
         return x[..., torch.as_tensor(perm, device=x.device)] * torch.as_tensor(sign, dtype=x.dtype, device=x.device)
