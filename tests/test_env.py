@@ -95,6 +95,35 @@ def test_rollout_truncates_at_t_and_resets_done_worlds(env, biped):
     assert 0.5 * 16.2 * 9.81 < total < 3.0 * 16.2 * 9.81
 
 
+def test_short_episodes_end_truncated_at_the_blend_time_and_resume_exactly(biped, poses):
+    env = make_env(biped, poses, n=16)
+    env.shorten_episodes(0.5, RewardConfig().blend_time)
+    td = env.reset()
+    env.stagger_episodes()
+    assert (env.step_count < env.episode_steps).all()
+    lengths = env.episode_steps.clone()
+    assert set(lengths.tolist()) == {100, 150}  # T_blend = 2 s and T = 3 s at 50 Hz, both drawn
+    starts = env.step_count.clone()
+    hold = env.action_for_setpoint(env.sim.state.joint_pos)[:1].expand(16, -1).clone()
+    seen = torch.zeros(16, dtype=torch.bool)
+    for k in range(1, 151):
+        td["action"] = hold
+        step, td = env.step_and_maybe_reset(td)
+        ended = starts + k == lengths
+        # a world ends exactly at its own length, truncated (bootstrapped), never terminated
+        assert torch.equal(step["next", "done"].view(-1), ended) and torch.equal(step["next", "truncated"].view(-1), ended)
+        assert not step["next", "terminated"].any() and (env.step_count[ended] == 0).all()
+        seen |= ended & (lengths == 100)
+        lengths[ended], starts[ended] = env.episode_steps[ended], -k  # the next episode's own draw
+    assert seen.any()  # short episodes did end early
+    # an exact resume carries each world's length
+    saved = env.run_state()
+    other = make_env(biped, poses, n=16)
+    other.shorten_episodes(0.5, RewardConfig().blend_time)
+    other.load_run_state(saved)
+    assert torch.equal(other.episode_steps, env.episode_steps)
+
+
 def test_partial_reset_touches_only_masked_worlds(env):
     td = env.reset()
     for _ in range(5):

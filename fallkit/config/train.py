@@ -138,6 +138,15 @@ class TrainConfig(Section):
         "this floor f: where the mean is the prior's alone the noise teaches nothing and only shakes the landing the "
         "orientation and joint terms judge (null: the same std throughout; needs train.fade_residual)",
     )
+    short_episodes: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="this fraction of the training episodes ends at reward.blend_time instead of env.episode_length, "
+        "truncated (the critic's value of the state there stands in for the rest, learned from the episodes that run "
+        "on): with train.fade_residual the rest of a fall is the prior's alone, so those steps teach the actor "
+        "nothing. Evaluation always runs to env.episode_length. 0: every episode runs to the end",
+    )
     noise_correlation_time: float = Field(
         0.0,
         ge=0,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import torch
+
 from fallkit.config import ConfigError, EnvConfig, RewardConfig
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
@@ -31,3 +33,14 @@ def check_inputs(
             f"reward.blend_time ({reward_cfg.blend_time} s) must not exceed env.episode_length "
             f"({env_cfg.episode_length} s): u(t) would never reach 1 (paper: T_blend <= T)"
         )
+
+
+def check_reset_to(n: int, qpos: torch.Tensor, qvel: torch.Tensor, end_pose_ids: torch.Tensor, num_poses: int) -> None:
+    """Raise unless `FallEnv.reset_to` got a state and an end pose in the set for each of its n worlds."""
+    if qpos.shape[0] != n or qvel.shape[0] != n or end_pose_ids.shape != (n,):
+        raise ValueError(
+            f"reset_to: need {n} states and end-pose ids, got qpos {list(qpos.shape)}, "
+            f"qvel {list(qvel.shape)}, end_pose_ids {list(end_pose_ids.shape)}"
+        )
+    if end_pose_ids.numel() and (int(end_pose_ids.min()) < 0 or int(end_pose_ids.max()) >= num_poses):
+        raise ValueError(f"reset_to: end_pose_ids must be in [0, {num_poses})")

@@ -4,7 +4,8 @@ One FallEnv drives all N worlds of a `BatchSim` (`batch_size=[N]`, on the
 simulator's device). Each episode starts from a random falling state
 (`InitialStateSampler`, Table II) with an end pose drawn uniformly from an
 `EndPoseSet`, runs for a fixed time T (truncation only: a fall has no failure
-state) and is then reset per world through TorchRL's `"_reset"` mask.
+state; training may end some at T_blend, `shorten_episodes`) and is then reset
+per world through TorchRL's `"_reset"` mask.
 
 Keys (TensorDict):
   "action"         [N, J]  joint setpoint = nominal pose + action_scale · action [rad],
@@ -29,6 +30,7 @@ free to fall in any direction and the orientation reward compares tilt only.
 from __future__ import annotations
 
 import logging
+import math
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -37,7 +39,7 @@ from torchrl.envs import EnvBase
 
 from fallkit import registry
 from fallkit.config import EnvConfig, RewardConfig
-from fallkit.env.checks import check_inputs
+from fallkit.env.checks import check_inputs, check_reset_to
 from fallkit.env.observations import (
     actor_layout,
     actor_observation,
@@ -113,15 +115,8 @@ class FallEnv(EnvBase):
 
     def reset_to(self, qpos: torch.Tensor, qvel: torch.Tensor, end_pose_ids: torch.Tensor) -> TensorDictBase:
         """Reset ALL worlds to given MuJoCo-layout states and end poses (paired evaluation)."""
-        n = self.num_envs
-        if qpos.shape[0] != n or qvel.shape[0] != n or end_pose_ids.shape != (n,):
-            raise ValueError(
-                f"reset_to: need {n} states and end-pose ids, got qpos {list(qpos.shape)}, "
-                f"qvel {list(qvel.shape)}, end_pose_ids {list(end_pose_ids.shape)}"
-            )
-        ids = end_pose_ids.to(self.device, torch.long)
-        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= len(self.end_poses)):
-            raise ValueError(f"reset_to: end_pose_ids must be in [0, {len(self.end_poses)})")
+        n, ids = self.num_envs, end_pose_ids.to(self.device, torch.long)
+        check_reset_to(n, qpos, qvel, ids, len(self.end_poses))
         self._reset_worlds(self._all, torch.arange(n, device=self.device), qpos, qvel, ids)
         return self._observation(self._no.expand(n, 1))
 
@@ -152,15 +147,19 @@ class FallEnv(EnvBase):
         return self.rewards.pop_means()
 
     def stagger_episodes(self) -> None:
-        """Spread the worlds' episode clocks uniformly over [0, T) (training only): all worlds start together,
-        and without this every impact of the batch would fall in the same iterations every T seconds, swinging
-        the batch statistics, and with them PPO's adaptive learning rate, with that period."""
-        self.step_count.copy_(torch.randint(self.max_steps, (self.num_envs,), generator=self._gen, device=self.device))
+        """Training only: spread the worlds' episode clocks over their episodes. Else all start together, every
+        impact of the batch falls in the same iterations, and PPO's adaptive learning rate swings with T."""
+        step = torch.randint(self.max_steps, (self.num_envs,), generator=self._gen, device=self.device)
+        self.step_count.copy_(step.remainder_(self.episode_steps))  # within each world's own episode
 
-    # Names differ from nn.Module's state_dict on purpose: this is the simulation's and
-    # episodes' state, not parameters.
+    def shorten_episodes(self, fraction: float, at_time: float) -> None:
+        """Training only: end this fraction of the episodes (drawn per episode) at `at_time` [s] instead of T,
+        truncated: the critic's value, learned from the episodes that run to T, stands in for the rest."""
+        self._short = (fraction, min(self.max_steps, math.ceil(at_time / self.dt - 1e-6)))
+
+    # Not nn.Module's state_dict on purpose: this is the simulation's and episodes' state, not parameters.
     _BUFFERS = ("step_count", "end_pose_ids", "goal_root_quat", "goal_joint_pos", "last_action", "last_last_action",
-                "_motion", "sensitivity")  # fmt: skip
+                "_motion", "sensitivity", "episode_steps")  # fmt: skip
 
     def run_state(self) -> dict:
         """Everything needed to continue exactly: physics, episode buffers, disturbances, generators."""
@@ -180,8 +179,8 @@ class FallEnv(EnvBase):
                 f"the saved run has {state['step_count'].shape[0]} envs, this one {self.num_envs} (sim.num_envs)"
             )
         for name in self._BUFFERS:
-            if name == "sensitivity" and name not in state:
-                continue  # a run saved before sensitivity inputs existed: the robot's weights, as built
+            if name in ("sensitivity", "episode_steps") and name not in state:
+                continue  # a run saved before these existed: the robot's weights and T, as built
             getattr(self, name).copy_(state[name])
         self.sim.load_state_dict(state["sim"])
         self._cpu_gen.set_state(state["generators"][0])
@@ -238,6 +237,10 @@ class FallEnv(EnvBase):
         st = self.sim.state
         ids = ids.to(self.device)
         self.step_count[ids] = 0
+        fraction, short = self._short
+        if fraction > 0:  # drawn only then: a run without short episodes draws the numbers it drew before
+            cut = torch.rand(len(ids), generator=self._gen, device=self.device) < fraction
+            self.episode_steps[ids] = torch.where(cut, short, self.max_steps)
         self.end_pose_ids[ids] = poses
         self.goal_root_quat[ids] = self._goal_tilt[poses]
         self.goal_joint_pos[ids] = self.end_poses.joint_pos[poses].to(torch.float32)
@@ -271,23 +274,15 @@ class FallEnv(EnvBase):
         t = self.step_count * self.dt
         u = blend(t, self.reward_cfg.blend_time)  # once per step: the reward's and the actor's u(t)
         ctx = RewardContext(
-            state=st,
-            action=action,
-            last_action=self.last_action,
-            last_last_action=self.last_last_action,
-            target_root_quat=frame.turn(self.goal_root_quat),
-            target_joint_pos=self.goal_joint_pos,
-            sensitivity=self.sensitivity,
-            time=t,
-            blend=u,
-            force_unit=self.reward_cfg.force_unit,
-            force_clip=self.reward_cfg.force_clip,
-            dt=self.dt,
-        )
+            state=st, action=action, last_action=self.last_action, last_last_action=self.last_last_action,
+            target_root_quat=frame.turn(self.goal_root_quat), target_joint_pos=self.goal_joint_pos,
+            sensitivity=self.sensitivity, time=t, blend=u, force_unit=self.reward_cfg.force_unit,
+            force_clip=self.reward_cfg.force_clip, dt=self.dt,
+        )  # fmt: skip
         self._reward_terms = self.rewards.contributions(ctx).masked_fill_(unstable.view(-1, 1), 0.0)
         self.last_last_action = self.last_action
         self.last_action = action.clone()
-        truncated = ((self.step_count >= self.max_steps) | unstable).view(-1, 1)
+        truncated = ((self.step_count >= self.episode_steps) | unstable).view(-1, 1)
         out = self._observation(truncated, frame, u)
         out.set("reward", self._reward_terms.sum(dim=1, keepdim=True))
         return out
@@ -330,6 +325,8 @@ class FallEnv(EnvBase):
         n, dev, f32 = self.num_envs, self.device, dict(dtype=torch.float32, device=self.device)
         j, nb = len(self.spec.joints), self.sim.state.body_vel.shape[1] - 1
         self.step_count = torch.zeros(n, dtype=torch.long, device=dev)
+        self.episode_steps = torch.full((n,), self.max_steps, dtype=torch.long, device=dev)  # T, or shorter
+        self._short = (0.0, self.max_steps)  # the fraction of episodes that end early, and when (shorten_episodes)
         self.end_pose_ids = torch.zeros(n, dtype=torch.long, device=dev)
         self.goal_root_quat = torch.zeros(n, 4, **f32)  # path frame
         self.goal_joint_pos = torch.zeros(n, j, **f32)
