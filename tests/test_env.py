@@ -97,7 +97,7 @@ def test_rollout_truncates_at_t_and_resets_done_worlds(env, biped):
 
 def test_short_episodes_end_truncated_at_the_blend_time_and_resume_exactly(biped, poses):
     env = make_env(biped, poses, n=16)
-    env.shorten_episodes(0.5, RewardConfig().blend_time)
+    env.shorten_episodes(0.5)
     td = env.reset()
     env.stagger_episodes()
     assert (env.step_count < env.episode_steps).all()
@@ -119,7 +119,7 @@ def test_short_episodes_end_truncated_at_the_blend_time_and_resume_exactly(biped
     # an exact resume carries each world's length
     saved = env.run_state()
     other = make_env(biped, poses, n=16)
-    other.shorten_episodes(0.5, RewardConfig().blend_time)
+    other.shorten_episodes(0.5)
     other.load_run_state(saved)
     assert torch.equal(other.episode_steps, env.episode_steps)
 

@@ -152,10 +152,10 @@ class FallEnv(EnvBase):
         step = torch.randint(self.max_steps, (self.num_envs,), generator=self._gen, device=self.device)
         self.step_count.copy_(step.remainder_(self.episode_steps))  # within each world's own episode
 
-    def shorten_episodes(self, fraction: float, at_time: float) -> None:
-        """Training only: end this fraction of the episodes (drawn per episode) at `at_time` [s] instead of T,
+    def shorten_episodes(self, fraction: float) -> None:
+        """Training only: end this fraction of the episodes (drawn per episode) at T_blend instead of T,
         truncated: the critic's value, learned from the episodes that run to T, stands in for the rest."""
-        self._short = (fraction, min(self.max_steps, math.ceil(at_time / self.dt - 1e-6)))
+        self._short = (fraction, min(self.max_steps, math.ceil(self.reward_cfg.blend_time / self.dt - 1e-6)))
 
     # Not nn.Module's state_dict on purpose: this is the simulation's and episodes' state, not parameters.
     _BUFFERS = ("step_count", "end_pose_ids", "goal_root_quat", "goal_joint_pos", "last_action", "last_last_action",

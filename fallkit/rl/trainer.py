@@ -68,7 +68,7 @@ class Trainer:
             self.spec, sensitivity=config.env.sensitivity_inputs.enabled, gravity=config.env.observe_gravity
         ) if tc.ppo.mirror else None
         self.env = make_env(config, self.spec, split="train", seed=seed)
-        self.env.shorten_episodes(tc.short_episodes, config.reward.blend_time)
+        self.env.shorten_episodes(tc.short_episodes)
         precision = resolve_precision(tc.precision, self.env.device)
         if precision != tc.precision:  # checkpoints record the arithmetic the policy learned with, not "auto"
             config = config.model_copy(update={"train": tc.model_copy(update={"precision": precision})})
