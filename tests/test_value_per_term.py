@@ -93,15 +93,16 @@ def test_a_value_per_component_needs_a_value_per_term():
 
 
 @pytest.mark.parametrize("per_component", [False, True])
-def test_a_terms_own_lambda_changes_its_heads_advantage_alone(biped, per_component):
-    """train.ppo.term_lam: the orientation head's advantage is GAE with its λ, every other head's is
-    the run's λ — exactly what running each head alone with its λ gives (per component: the impact's
-    heads all take the impact term's λ)."""
+@pytest.mark.parametrize("option, default, own", [("lam", 0.95, (0.99, 0.8)), ("gamma", 0.99, (0.995, 0.9))])
+def test_a_terms_own_lambda_or_gamma_changes_its_heads_advantage_alone(biped, per_component, option, default, own):
+    """train.ppo.term_lam / term_gamma: the orientation head's advantage and value target are GAE with its
+    λ or γ, every other head's with the run's — exactly what running each head alone with its setting gives
+    (per component: the impact's heads all take the impact term's)."""
     from fallkit.rl.ppo import value_heads
 
     env, batch = _rollout(biped)
     actor = make_actor(batch["policy"].shape[-1], batch["action"].shape[-1], [16], 0.3)
-    own_lam = {"orientation": 0.99, "impact": 0.8}
+    own_setting = {"orientation": own[0], "impact": own[1]}
     names = value_heads(env.rewards, PPOConfig(value_per_component=per_component))[0]
     critic = make_critic(batch["critic"].shape[-1], [16], heads=len(names))
     torch.manual_seed(0)
@@ -113,37 +114,51 @@ def test_a_terms_own_lambda_changes_its_heads_advantage_alone(biped, per_compone
         return PPO(actor, critic, cfg, rewards=env.rewards)._gae_per_term(data)
 
     mixed = batch.clone()
-    advantages = gae(mixed, term_lam=own_lam)
-    alone = {lam: gae(batch.clone(), lam=lam) for lam in (0.95, 0.99, 0.8)}
+    advantages = gae(mixed, **{f"term_{option}": own_setting})
+    alone = {}
+    for value in (default, *own):
+        alone[value] = batch.clone()
+        alone[value]["terms_advantage"] = gae(alone[value], **{option: value})
     for k, head in enumerate(names):
-        want = alone[own_lam.get(head.split("/")[0], 0.95)][..., k]
-        torch.testing.assert_close(advantages[..., k], want, atol=1e-4, rtol=1e-4)  # two GAE code paths: rounding
+        want = alone[own_setting.get(head.split("/")[0], default)]
+        torch.testing.assert_close(advantages[..., k], want["terms_advantage"][..., k], atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(mixed["value_target"][..., k], want["value_target"][..., k], atol=1e-4, rtol=1e-4)
     orientation = names.index("orientation")
-    assert not torch.allclose(advantages[..., orientation], alone[0.95][..., orientation])
+    assert not torch.allclose(advantages[..., orientation], alone[default]["terms_advantage"][..., orientation])
     torch.testing.assert_close(mixed["advantage"], advantages.sum(-1, keepdim=True))
 
 
-def test_a_terms_own_lambda_is_checked():
+def test_a_terms_own_lambda_and_gamma_are_checked():
     from fallkit.errors import ConfigError
-    from fallkit.rl.ppo import head_lambdas
+    from fallkit.rl.ppo import per_head
 
     with pytest.raises(ValueError, match=r"term_lam.orientation=1.5: a GAE λ lies in \[0, 1\]"):
         PPOConfig(term_lam={"orientation": 1.5})
+    with pytest.raises(ValueError, match=r"term_gamma.orientation=1.0: a term's discount lies in \(0, 1\)"):
+        PPOConfig(term_gamma={"orientation": 1.0})
     with pytest.raises(ValueError, match="term_lam needs train.ppo.value_per_term=true"):
         PPOConfig(value_per_term=False, term_lam={"orientation": 0.99})
+    with pytest.raises(ValueError, match="term_gamma needs train.ppo.value_per_term=true"):
+        PPOConfig(value_per_term=False, term_gamma={"orientation": 0.995})
     with pytest.raises(ConfigError, match="orientaton is not a reward term of this run; the terms: impact, orient"):
-        head_lambdas(["impact", "orientation"], PPOConfig(term_lam={"orientaton": 0.99}))
-    assert head_lambdas(["impact", "orientation"], PPOConfig()) is None
+        per_head(["impact", "orientation"], PPOConfig(term_lam={"orientaton": 0.99}), "term_lam", 0.95)
+    with pytest.raises(ConfigError, match="term_gamma: orientaton is not a reward term"):
+        per_head(["impact", "orientation"], PPOConfig(term_gamma={"orientaton": 0.995}), "term_gamma", 0.99)
+    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam", 0.95) is None
 
 
-def test_a_terms_own_lambda_from_the_command_line(tmp_path):
+def test_a_terms_own_lambda_and_gamma_from_the_command_line(tmp_path):
     from helpers import TINY, composed_config
 
     from fallkit.rl.trainer import Trainer
 
-    trainer = Trainer(composed_config(*TINY, "train.iterations=1", "+train.ppo.term_lam.orientation=0.99"), tmp_path)
+    overrides = ("train.iterations=1", "+train.ppo.term_lam.orientation=0.99")
+    overrides += ("+train.ppo.term_gamma.orientation=0.995",)
+    trainer = Trainer(composed_config(*TINY, *overrides), tmp_path)
     names = trainer.ppo.term_names
     assert trainer.ppo.head_lam.tolist() == pytest.approx([0.99 if n == "orientation" else 0.95 for n in names])
+    assert trainer.ppo.head_gamma.tolist() == pytest.approx([0.995 if n == "orientation" else 0.99 for n in names])
+    assert trainer.run().exists()  # a run with both trains
 
 
 def test_training_with_a_value_per_term_logs_each_terms_advantage_and_loads(tmp_path):

@@ -83,6 +83,13 @@ class PPOConfig(Section):
         "0.99`), the others keep `lam`; a term paid late (orientation, blended in by u(t)) can credit the actions "
         "that decided it further back without the impact term's advantages paying that variance; {} = `lam` for all",
     )
+    term_gamma: dict[str, float] = Field(
+        default_factory=dict,
+        description="with value_per_term: a discount γ of its own for some reward terms (`+train.ppo.term_gamma."
+        "orientation=0.995`), the others keep `gamma`; the orientation term is paid late and, at the time limit, "
+        "bootstrapped from its head, so its own γ sets how much the landing's tilt weighs at the moment the fall's "
+        "side is decided; {} = `gamma` for all (measured in docs/training.md)",
+    )
     value_per_component: bool = Field(
         False,
         description="with value_per_term: the impact term's value split further, one head per robot component (its "
@@ -95,12 +102,19 @@ class PPOConfig(Section):
     def _per_component_needs_per_term(self) -> PPOConfig:
         if self.value_per_component and not self.value_per_term:
             raise ValueError("train.ppo.value_per_component=true needs train.ppo.value_per_term=true (a value per term)")
-        if self.term_lam and not self.value_per_term:
-            raise ValueError("train.ppo.term_lam needs train.ppo.value_per_term=true (a λ per term, a value per term)")
+        for option, symbol in (("term_lam", "λ"), ("term_gamma", "γ")):
+            if getattr(self, option) and not self.value_per_term:
+                raise ValueError(
+                    f"train.ppo.{option} needs train.ppo.value_per_term=true (a {symbol} per term, a value per term)"
+                )
         bad = {k: v for k, v in self.term_lam.items() if not 0.0 <= v <= 1.0}
         if bad:
             name, v = next(iter(bad.items()))
             raise ValueError(f"train.ppo.term_lam.{name}={v}: a GAE λ lies in [0, 1]")
+        bad = {k: v for k, v in self.term_gamma.items() if not 0.0 < v < 1.0}
+        if bad:  # γ = 1 is refused: time-limit truncation bootstraps the tail, which would then never end
+            name, v = next(iter(bad.items()))
+            raise ValueError(f"train.ppo.term_gamma.{name}={v}: a term's discount lies in (0, 1)")
         return self
 
 

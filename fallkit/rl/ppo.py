@@ -33,8 +33,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
      The env reports the impact term per component (RewardSum.columns); those columns are summed
      into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
-     `term_lam` gives some terms a GAE λ of their own (`head_lambdas`), e.g. the orientation term,
-     paid late, a longer credit horizon than the impact's.
+     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (`per_head`), e.g.
+     the orientation term, paid late, a longer credit horizon than the impact's.
   8. With `relabels` (train.ppo.relabel_sensitivity: a policy that observes its sensitivity weights;
      train.ppo.relabel_end_pose), the batch is copied under newly drawn weights, its impact repriced,
      and/or under other end poses, its tracking terms recomputed (fallkit.rl.relabel), GAE
@@ -85,17 +85,19 @@ def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Te
     return list(rewards.names), rewards.column_term
 
 
-def head_lambdas(head_terms: list[str], cfg: PPOConfig) -> torch.Tensor | None:
-    """The GAE λ of every value head [K], given the reward term of each head; None when all use `lam`."""
-    if not cfg.term_lam:
+def per_head(head_terms: list[str], cfg: PPOConfig, option: str, default: float) -> torch.Tensor | None:
+    """A GAE setting of every value head [K] (`option`: "term_lam" or "term_gamma"), given the reward term
+    of each head; None when every head uses `default` (the run's λ or γ)."""
+    own = getattr(cfg, option)
+    if not own:
         return None
-    unknown = sorted(set(cfg.term_lam) - set(head_terms))
+    unknown = sorted(set(own) - set(head_terms))
     if unknown:
         raise ConfigError(
-            f"train.ppo.term_lam: {', '.join(unknown)} is not a reward term of this run; "
+            f"train.ppo.{option}: {', '.join(unknown)} is not a reward term of this run; "
             f"the terms: {', '.join(sorted(set(head_terms)))}"
         )
-    return torch.tensor([cfg.term_lam.get(term, cfg.lam) for term in head_terms])
+    return torch.tensor([own.get(term, default) for term in head_terms])
 
 
 def critic_heads(config: FallkitConfig, spec: RobotSpec, rewards: RewardSum) -> tuple[list[str], list[int] | None]:
@@ -158,7 +160,8 @@ class PPO:
         head_terms = self.term_names  # each head's reward term: a head per component is its impact term's
         if rewards is not None and cfg.value_per_component:
             head_terms = [rewards.names[k] for k in rewards.column_term.tolist()]
-        self.head_lam = head_lambdas(head_terms, cfg)  # None: every head uses lam
+        self.head_lam = per_head(head_terms, cfg, "term_lam", cfg.lam)  # None: every head uses lam
+        self.head_gamma = per_head(head_terms, cfg, "term_gamma", cfg.gamma)  # None: every head uses gamma
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
@@ -277,7 +280,8 @@ class PPO:
     def _advantages(self, batch: TensorDict) -> dict[str, torch.Tensor]:
         """GAE into the batch (advantage, value target); with a value per term, each term's advantage spread."""
         if self.potential is not None:
-            self.potential.shape(batch, self.cfg.gamma)
+            # the shaping joins the orientation head, so it discounts as that head does (policy invariance)
+            self.potential.shape(batch, self.cfg.term_gamma.get("orientation", self.cfg.gamma))
         if not self.cfg.value_per_term:
             self.gae(batch)
             return {}
@@ -301,9 +305,11 @@ class PPO:
             terms[..., column] += shaping.squeeze(-1)
         if self.head_lam is not None:
             self.head_lam = self.head_lam.to(terms)  # once onto the batch's device
+        if self.head_gamma is not None:
+            self.head_gamma = self.head_gamma.to(terms)
         advantages, targets = vec_generalized_advantage_estimate(
-            self.cfg.gamma,
-            self.cfg.lam if self.head_lam is None else self.head_lam,  # a [K] λ broadcasts over the heads
+            self.cfg.gamma if self.head_gamma is None else self.head_gamma,  # a [K] γ or λ broadcasts over the heads
+            self.cfg.lam if self.head_lam is None else self.head_lam,
             batch[keys.value],
             batch["next", keys.value],
             terms,
