@@ -141,10 +141,10 @@ def test_a_terms_own_lambda_and_gamma_are_checked():
     with pytest.raises(ValueError, match="term_gamma needs train.ppo.value_per_term=true"):
         PPOConfig(value_per_term=False, term_gamma={"orientation": 0.995})
     with pytest.raises(ConfigError, match="orientaton is not a reward term of this run; the terms: impact, orient"):
-        per_head(["impact", "orientation"], PPOConfig(term_lam={"orientaton": 0.99}), "term_lam", 0.95)
+        per_head(["impact", "orientation"], PPOConfig(term_lam={"orientaton": 0.99}), "term_lam")
     with pytest.raises(ConfigError, match="term_gamma: orientaton is not a reward term"):
-        per_head(["impact", "orientation"], PPOConfig(term_gamma={"orientaton": 0.995}), "term_gamma", 0.99)
-    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam", 0.95) is None
+        per_head(["impact", "orientation"], PPOConfig(term_gamma={"orientaton": 0.995}), "term_gamma")
+    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam") is None
 
 
 def test_a_terms_own_lambda_and_gamma_from_the_command_line(tmp_path):

@@ -85,12 +85,13 @@ def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Te
     return list(rewards.names), rewards.column_term
 
 
-def per_head(head_terms: list[str], cfg: PPOConfig, option: str, default: float) -> torch.Tensor | None:
+def per_head(head_terms: list[str], cfg: PPOConfig, option: str) -> torch.Tensor | None:
     """A GAE setting of every value head [K] (`option`: "term_lam" or "term_gamma"), given the reward term
-    of each head; None when every head uses `default` (the run's λ or γ)."""
+    of each head; None when every head uses the run's own (`lam` or `gamma`)."""
     own = getattr(cfg, option)
     if not own:
         return None
+    default = getattr(cfg, option.removeprefix("term_"))
     unknown = sorted(set(own) - set(head_terms))
     if unknown:
         raise ConfigError(
@@ -160,8 +161,8 @@ class PPO:
         head_terms = self.term_names  # each head's reward term: a head per component is its impact term's
         if rewards is not None and cfg.value_per_component:
             head_terms = [rewards.names[k] for k in rewards.column_term.tolist()]
-        self.head_lam = per_head(head_terms, cfg, "term_lam", cfg.lam)  # None: every head uses lam
-        self.head_gamma = per_head(head_terms, cfg, "term_gamma", cfg.gamma)  # None: every head uses gamma
+        self.head_lam = per_head(head_terms, cfg, "term_lam")  # None: every head uses lam
+        self.head_gamma = per_head(head_terms, cfg, "term_gamma")  # None: every head uses gamma
         self.actor, self.critic = actor, critic
         self.loss = ClipPPOLoss(
             actor,
