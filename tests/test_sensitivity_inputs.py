@@ -93,24 +93,6 @@ def test_only_the_named_components_are_drawn(biped, poses, draw):
         assert changed[:, [0, -1]].all()
 
 
-def test_a_fraction_of_episodes_keeps_the_robots_weights(biped, poses):
-    env = make_env(biped, poses, inputs(low=1.0, high=4.0, robot_weights_fraction=0.5), n=512)
-    env.reset()
-    factor = env.sensitivity / torch.as_tensor(biped.sensitivity, dtype=torch.float32)
-    kept = (factor == 1.0).all(dim=1)
-    assert 0.4 < kept.float().mean() < 0.6  # about half the worlds, every component at once
-    assert (factor[~kept] != 1.0).all()  # the rest drawn as without the option
-    assert factor.max() <= 4.0
-
-
-@pytest.mark.parametrize("fraction", [-0.1, 1.0])
-def test_a_fraction_outside_0_to_1_is_refused(fraction):
-    from pydantic import ValidationError
-
-    with pytest.raises(ValidationError, match="robot_weights_fraction"):
-        inputs(robot_weights_fraction=fraction)
-
-
 def test_components_that_are_not_the_robots_are_one_line_errors(biped, poses):
     from fallkit.errors import ConfigError
 

@@ -138,14 +138,6 @@ class SensitivityInputs(Section):
         description="the components whose weights are drawn, and so can be set at run time (e.g. [head,battery]); "
         "the others keep the robot's weights in training, their inputs constant; null = every component",
     )
-    robot_weights_fraction: float = Field(
-        0.0,
-        ge=0,
-        lt=1,
-        description="the fraction of episodes, drawn per episode, that keep the robot's weights exactly (nothing "
-        "drawn): at the robot's weights the policy then learns what a policy trained at them learns, instead of "
-        "the draw's average leaking into them",
-    )
 
     @model_validator(mode="after")
     def _ordered(self) -> "SensitivityInputs":

@@ -114,8 +114,7 @@ def _uniform(r: RandomRange, k: int, generator: torch.Generator, device: torch.d
 class SensitivityDraw:
     """The sensitivity weights [k, C] of k new episodes (env.sensitivity_inputs), on `device`: the robot's
     weights × factors log-uniform in [low, high] for the components drawn (`components`; null: all of them),
-    the others at the robot's weights; draw="one": one of the drawn components per episode; a `robot_weights_fraction` of the episodes keeps
-    the robot's weights. Calling it gives
+    the others at the robot's weights; draw="one": one of the drawn components per episode. Calling it gives
     None where nothing is drawn (low = high = 1 in evaluation, or the inputs off), so the worlds keep the
     weights they have."""
 
@@ -143,7 +142,4 @@ class SensitivityDraw:
             log_factor = torch.where(one, log_factor, 0.0)
         elif self.config.components is not None:
             log_factor = torch.where(self.drawn, log_factor, 0.0)
-        if self.config.robot_weights_fraction > 0:  # these episodes keep the robot's weights: an anchor at 1x
-            keep = torch.rand(k, 1, generator=generator, device=self.weights.device)
-            log_factor = torch.where(keep < self.config.robot_weights_fraction, 0.0, log_factor)
         return self.weights * torch.exp(log_factor)
