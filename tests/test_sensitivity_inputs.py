@@ -224,3 +224,65 @@ def test_evaluating_with_a_weight_that_was_never_drawn_warns(tmp_path, caplog):
     assert "never saw" not in caplog.text  # the head's weight was drawn in training
     prepare(composed_config(f"checkpoint={tmp_path / 'run'}", "mode=eval", "robot.sensitivity.pelvis=3"))
     assert "trained with only ['head'] drawn" in caplog.text and "another weight of ['pelvis']" in caplog.text
+
+
+# ---- experts per corner of the drawn weights (train.sensitivity_experts) ----------------------------
+
+EXPERTS = ["env.sensitivity_inputs.enabled=true", "env.sensitivity_inputs.components=[head,battery]",
+           "env.sensitivity_inputs.low=1.0", "env.sensitivity_inputs.high=4.0", "train.sensitivity_experts=true",
+           "robot=biped20_battery_baseline"]  # fmt: skip
+
+
+def test_the_gate_gives_each_corner_of_the_drawn_range_its_own_expert():
+    from fallkit.rl.models import sensitivity_gate
+    from fallkit.robots import robot_spec
+
+    config = composed_config(*TINY, *EXPERTS)
+    spec = robot_spec(config.robot)
+    gate = sensitivity_gate(config, spec)
+    cols = actor_slices(spec, True)["sensitivity"]
+    head, battery = (cols.start + spec.component_names.index(c) for c in ("head", "battery"))
+    obs = torch.zeros(4, cols.stop)  # ln w = 0: the robot's weights (every weight 1.0)
+    obs[1, head] = math.log(4.0)  # the head at the range's top, the battery at its bottom
+    obs[2, [head, battery]] = math.log(2.0)  # the middle of both ranges
+    obs[3, head] = math.log(40.0)  # beyond the range: held at its end
+    g = gate(obs)
+    assert g.shape == (4, 4) and torch.allclose(g.sum(-1), torch.ones(4))
+    corners = gate.corners.tolist()  # [head, battery] per expert
+    assert g[0, corners.index([False, False])] == 1.0 and g[1, corners.index([True, False])] == 1.0
+    assert torch.allclose(g[2], torch.full((4,), 0.25)) and torch.equal(g[3], g[1])
+
+
+def test_experts_train_export_and_the_weights_choose_the_expert(tmp_path):
+    from fallkit.eval.evaluate import prepare
+    from fallkit.rl.export import run_export
+    from fallkit.rl.policy import load_policy
+    from fallkit.rl.trainer import Trainer
+
+    Trainer(composed_config(*TINY, *EXPERTS, "train.iterations=2"), tmp_path / "run").run()
+    policy = load_policy(tmp_path / "run")
+    net, spec = policy.module.module.net, policy.spec
+    assert len(net.experts) == 4 and not hasattr(net, "mean")
+    (tmp_path / "export").mkdir()  # run_export checks that onnxruntime reproduces the blended actions
+    run_export(composed_config(*TINY, *EXPERTS, f"checkpoint={tmp_path / 'run'}", "mode=export"), tmp_path / "export")
+    prepare(composed_config(f"checkpoint={tmp_path / 'run'}", "mode=eval", "robot.sensitivity.head=4"))
+    obs = torch.zeros(1, net.norm.mean.shape[0])
+    obs[0, actor_slices(spec, True)["sensitivity"].start + spec.component_names.index("head")] = math.log(4)
+    top = net.experts[[c.tolist() for c in net.gate.corners].index([True, False])]
+    loc, _ = net(obs)  # with the prior's share removed, the head at 4x is that corner's expert alone
+    residual = (loc - net.prior(obs)) / net.prior.residual_weight(obs)
+    assert torch.allclose(residual, top(net.norm(obs)), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["train.sensitivity_experts=true"], "blends experts by the observed sensitivity weights, which must be drawn"),
+        (["train.sensitivity_experts=true", "env.sensitivity_inputs.enabled=true"], "name at most 3 with"),
+    ],
+)
+def test_experts_without_a_few_drawn_weights_are_one_line_errors(overrides, message):
+    from fallkit.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        composed_config(*overrides)
