@@ -65,7 +65,7 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
         obs = td["policy"][:k]
         swapped = obs.clone()
         swapped[:, goal] = obs[other][:, goal]
-        deviation = [net.mean(net.norm(o)) * net.prior.residual_weight(o) for o in (obs, swapped)]
+        deviation = [net.deviation(o) for o in (obs, swapped)]
         size = deviation[0].norm(dim=-1).mean()
         dependence.append(((deviation[0] - deviation[1]).norm(dim=-1).mean() / size).item() if size > 0 else None)
         action = torch.empty_like(env.last_action)

@@ -81,12 +81,11 @@ def reading(run: Path, falls: int = 256) -> dict:
     weights, head = cols["sensitivity"], cols["sensitivity"].start + env.spec.component_names.index("head")
     goal = torch.cat([torch.arange(cols[n].start, cols[n].stop) for n in ("goal_root_quat", "goal_joint_pos")])
     other = torch.roll(torch.arange(falls), 1)  # each fall's end pose replaced by the previous fall's
-    deviation = lambda o: net.mean(net.norm(o)) * net.prior.residual_weight(o)  # noqa: E731
     changes: dict[str, list[float]] = {"head_4x": [], "every_weight_4x": [], "another_end_pose": []}
     td = env.reset_to(trials.qpos, trials.qvel, trials.pose_ids)
     for _ in range(env.max_steps):
         obs = td["policy"]
-        base = deviation(obs)
+        base = net.deviation(obs)
         size = base.norm(dim=-1).mean()
         if size > 0:  # not yet faded out
             variants = {"head_4x": obs.clone(), "every_weight_4x": obs.clone(), "another_end_pose": obs.clone()}
@@ -94,7 +93,7 @@ def reading(run: Path, falls: int = 256) -> dict:
             variants["every_weight_4x"][:, weights] += math.log(4.0)
             variants["another_end_pose"][:, goal] = obs[other][:, goal]
             for name, o in variants.items():
-                changes[name].append(((deviation(o) - base).norm(dim=-1).mean() / size).item())
+                changes[name].append(((net.deviation(o) - base).norm(dim=-1).mean() / size).item())
         td = env.step(td.set("action", setup.policy(td.select("policy"))["action"]))["next"]
     return {name: round(sum(v) / len(v), 3) for name, v in changes.items()}
 

@@ -220,13 +220,21 @@ class GaussianPolicyNet(nn.Module):
             nn.init.uniform_(layers[-1].weight, -1e-3, 1e-3)
             nn.init.zeros_(layers[-1].bias)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def network(self, obs: torch.Tensor) -> torch.Tensor:
+        """The MLP's output (the experts' blend with train.sensitivity_experts), before the prior's fade."""
         x = self.norm(obs)
         if self.gate is None:
-            loc = run_mlp(self.mean, x, self.precision)
-        else:
-            each = torch.stack([run_mlp(layers, x, self.precision) for layers in self.experts], -1)  # [..., A, E]
-            loc = (each * self.gate(obs).unsqueeze(-2)).sum(-1)
+            return run_mlp(self.mean, x, self.precision)
+        each = torch.stack([run_mlp(layers, x, self.precision) for layers in self.experts], -1)  # [..., A, E]
+        return (each * self.gate(obs).unsqueeze(-2)).sum(-1)
+
+    def deviation(self, obs: torch.Tensor) -> torch.Tensor:
+        """The learned deviation: the network's share of the policy mean (all of it without a prior)."""
+        loc = self.network(obs)
+        return loc if self.prior is None else loc * self.prior.residual_weight(obs)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.network(obs)
         scale = self.log_std.exp().expand_as(loc)
         if self.prior is not None:
             weight = self.prior.residual_weight(obs)
