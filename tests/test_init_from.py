@@ -74,26 +74,6 @@ def test_a_run_started_from_a_policy_acts_as_it_and_learns_its_new_inputs(tmp_pa
     assert torch.count_nonzero(first[:, weights]) > 0  # the inputs it did not have are being learned
 
 
-def test_every_expert_starts_as_the_loaded_policy(tmp_path, trained):
-    from fallkit.rl.checkpoint import load_checkpoint
-
-    loaded = trainer(tmp_path / "loaded")
-    ckpt = load_checkpoint(trained)
-    loaded.actor.load_state_dict(ckpt["actor"])
-    experts = ["env.sensitivity_inputs.components=[head]", "env.sensitivity_inputs.low=1.0",
-               "env.sensitivity_inputs.high=4.0", "train.sensitivity_experts=true"]  # fmt: skip
-    new = trainer(tmp_path / "new", f"train.init_from={trained}", SENSITIVITY, *experts, "train.iterations=1")
-    td = new._first_observation()
-    actor_obs = without(td["policy"], actor_layout(new.spec, sensitivity=True), "sensitivity")
-    policy_net(loaded.actor).norm.update(actor_obs)
-    head = actor_slices(new.spec, sensitivity=True)["sensitivity"].start + new.spec.component_names.index("head")
-    obs = td["policy"].clone()
-    obs[:, head] = torch.linspace(0.0, 2.0, obs.shape[0]) + obs[:, head]  # from the range's bottom to beyond its top
-    net = policy_net(new.actor)
-    assert len(net.experts) == 2 and net.gate(obs)[:, 1].unique().numel() > 2  # the blend does vary
-    torch.testing.assert_close(net(obs)[0], policy_net(loaded.actor)(actor_obs)[0], rtol=1e-6, atol=1e-6)
-
-
 @pytest.mark.parametrize(
     ("overrides", "says"),
     [

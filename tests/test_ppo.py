@@ -130,6 +130,7 @@ def test_faded_residual_leaves_the_end_of_the_fall_to_the_prior(biped):
     loc, _ = net(obs)
     assert not torch.allclose(loc[0], prior(obs)[0])  # u = 0: the MLP acts
     torch.testing.assert_close(loc[1], prior(obs)[1])  # u = 1: the prior alone
+    torch.testing.assert_close(loc, prior(obs) + net.deviation(obs))  # what the benchmarks read as the deviation
 
 
 def test_prior_power_keeps_the_hold_and_the_residual_longer_and_still_ends_at_the_target(biped):

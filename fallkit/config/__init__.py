@@ -98,23 +98,6 @@ class FallkitConfig(Section):
         return self
 
     @model_validator(mode="after")
-    def _experts_need_few_drawn_weights(self) -> "FallkitConfig":
-        inputs = self.env.sensitivity_inputs
-        if not self.train.sensitivity_experts:
-            return self
-        if not (inputs.enabled and inputs.low < inputs.high):
-            raise ValueError(
-                "train.sensitivity_experts blends experts by the observed sensitivity weights, which must be drawn: "
-                "set env.sensitivity_inputs.enabled=true (with low < high)"
-            )
-        if inputs.components is None or len(inputs.components) > 3:
-            raise ValueError(
-                "train.sensitivity_experts trains 2^d actors for d drawn components: name at most 3 with "
-                "env.sensitivity_inputs.components (e.g. [head])"
-            )
-        return self
-
-    @model_validator(mode="after")
     def _blend_within_the_episode(self) -> "FallkitConfig":
         if self.reward.blend_time > self.env.episode_length:
             raise ValueError(

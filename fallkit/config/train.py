@@ -152,13 +152,6 @@ class TrainConfig(Section):
         "this floor f: where the mean is the prior's alone the noise teaches nothing and only shakes the landing the "
         "orientation and joint terms judge (null: the same std throughout; needs train.fade_residual)",
     )
-    sensitivity_experts: bool = Field(
-        False,
-        description="with env.sensitivity_inputs: the actor is 2^d MLPs, one per corner of the d drawn components' "
-        "weight range, blended multilinearly by where each observed weight lies in it (fallkit.rl.models."
-        "SensitivityGate): the policy at the range's ends is the expert trained there, not an average of the draw "
-        "(docs/sensitivity_inputs.md); d <= 3 (env.sensitivity_inputs.components)",
-    )
     short_episodes: float = Field(
         0.0,
         ge=0,

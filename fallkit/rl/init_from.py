@@ -20,7 +20,6 @@ does not.
 from __future__ import annotations
 
 import logging
-import re
 from dataclasses import dataclass
 
 import torch
@@ -115,25 +114,22 @@ def _column_map(before: list[tuple[str, int]], after: list[tuple[str, int]], wha
 def _load_net(net: nn.Module, state: dict[str, torch.Tensor], index: torch.Tensor, name: str, say: str) -> torch.Tensor:
     """`state` into `net` with the input columns moved by `index`; returns the columns of `net` not in `index`."""
     own = net.state_dict()
-    # the first Linear of each MLP (one per expert with train.sensitivity_experts): the only ones that see observations
-    firsts = {k for k in own if re.search(r"(?:^|\.)(?:mean|value|experts\.\d+)\.0\.weight$", k)}
+    first = next(k for k in own if k.endswith(".weight"))  # the first Linear: the only one that sees observations
     inputs = {k for k in own if k.endswith(("norm.mean", "norm.var"))}  # the observation statistics, per column
-    keys = [k for k in own if not re.search(r"\.(?:prior|gate)\.|weight_columns$", k)]  # this run's layout, not theirs
-    source = {k: _loaded_key(k, state) for k in keys}
+    keys = [k for k in own if ".prior." not in k and not k.endswith("weight_columns")]  # this run's layout, not theirs
     for key in keys:
-        if source[key] not in state:
-            raise ConfigError(f"{say}: its {name} network has no '{key}' (another train.ppo.normalize_value, or "
-                              "experts of other weights?)")  # fmt: skip
-        theirs = state[source[key]]
-        shape = (own[key].shape[0], index.numel()) if key in firsts else (
+        if key not in state:
+            raise ConfigError(f"{say}: its {name} network has no '{key}' (another train.ppo.normalize_value?)")
+        theirs = state[key]
+        shape = (own[key].shape[0], index.numel()) if key == first else (
             (index.numel(),) if key in inputs else own[key].shape)  # fmt: skip
         if theirs.shape != shape:
             raise ConfigError(f"{say}: its {name} network's {key} has shape {tuple(theirs.shape)}, this run's "
                               f"{tuple(shape)}: use the loaded run's network sizes and value heads "
                               "(train.actor_hidden, train.critic_hidden, train.ppo.value_per_term/value_per_component)")  # fmt: skip
     for key in keys:
-        theirs = state[source[key]].to(own[key].dtype)
-        if key in firsts:
+        theirs = state[key].to(own[key].dtype)
+        if key == first:
             own[key].zero_()
             own[key][:, index] = theirs
         elif key in inputs:
@@ -141,17 +137,9 @@ def _load_net(net: nn.Module, state: dict[str, torch.Tensor], index: torch.Tenso
         else:
             own[key].copy_(theirs)
     net.load_state_dict(own)
-    new = torch.ones(own[min(firsts)].shape[1], dtype=torch.bool)
+    new = torch.ones(own[first].shape[1], dtype=torch.bool)
     new[index] = False
     return new.nonzero().squeeze(-1)
-
-
-def _loaded_key(key: str, state: dict[str, torch.Tensor]) -> str:
-    """The loaded state's key for this run's `key`: the same, or for an expert of this run
-    (train.sensitivity_experts) the loaded single MLP's, so every expert starts as the loaded policy."""
-    if key in state or ".experts." not in key:
-        return key
-    return re.sub(r"\.experts\.\d+\.", ".mean.", key)
 
 
 def _get(tree: dict, key: str):

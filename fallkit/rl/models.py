@@ -7,7 +7,6 @@ them and an exported policy normalises its own inputs.
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import torch
@@ -16,7 +15,6 @@ from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
 from fallkit.config import FallkitConfig
-from fallkit.config.env import SensitivityInputs
 from fallkit.env.observations import actor_slices
 from fallkit.robots.spec import RobotSpec
 
@@ -148,40 +146,6 @@ def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
     return JointPrior(spec, config.env.action_scale, seek=tc.prior == "seek", fade=tc.fade_residual, power=tc.prior_power)
 
 
-class SensitivityGate(nn.Module):
-    """The blend [..., 2^d] of the actor's experts (train.sensitivity_experts) from the d drawn components'
-    observed ln w_c: t_c = where ln w_c lies in the drawn range (0 at the robot's weight × low, 1 at × high,
-    clamped), and the expert of corner b ∈ {0, 1}^d weighs Π_c (t_c if b_c else 1 − t_c). One MLP that sees
-    ln w learns the draw's average before it reads the input (docs/sensitivity_inputs.md); with experts the
-    policy at a range's end is the MLP trained there, each trained by the episodes near its corner."""
-
-    def __init__(self, spec: RobotSpec, inputs: SensitivityInputs, gravity: bool = False):
-        super().__init__()
-        start = actor_slices(spec, sensitivity=True, gravity=gravity)["sensitivity"].start
-        ids = [spec.component_names.index(c) for c in inputs.components]
-        robot = torch.as_tensor(spec.sensitivity, dtype=torch.float32)[ids]
-        self.register_buffer("columns", torch.tensor([start + i for i in ids]))
-        self.register_buffer("offset", torch.log(robot * inputs.low))
-        self.register_buffer("span", torch.tensor(math.log(inputs.high / inputs.low)))
-        corners = torch.cartesian_prod(*[torch.tensor([False, True])] * len(ids)).reshape(-1, len(ids))
-        self.register_buffer("corners", corners)  # [2^d, d]
-
-    @property
-    def experts(self) -> int:
-        return self.corners.shape[0]
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        t = ((obs[..., self.columns] - self.offset) / self.span).clamp(0.0, 1.0).unsqueeze(-2)  # [..., 1, d]
-        return torch.where(self.corners, t, 1.0 - t).prod(-1)
-
-
-def sensitivity_gate(config: FallkitConfig, spec: RobotSpec) -> SensitivityGate | None:
-    """The actor's expert blend (train.sensitivity_experts) for this robot, or None."""
-    if not config.train.sensitivity_experts:
-        return None
-    return SensitivityGate(spec, config.env.sensitivity_inputs, config.env.observe_gravity)
-
-
 class GaussianPolicyNet(nn.Module):
     """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state.
 
@@ -200,41 +164,27 @@ class GaussianPolicyNet(nn.Module):
         prior: JointPrior | None = None,
         noise_floor: float | None = None,
         precision: Precision = "float32",
-        gate: SensitivityGate | None = None,
     ):
         super().__init__()
         if noise_floor is not None and (prior is None or not prior.fade):
             raise ValueError("GaussianPolicyNet: noise_floor fades the noise with the residual: it needs a fading prior")
         self.norm = RunningNorm(obs_dim)
-        if gate is None:
-            self.mean = mlp(obs_dim, hidden, act_dim)
-        else:  # state-dict keys "experts.<e>.…" instead of "mean.…": a plain policy's checkpoints are unchanged
-            self.experts = nn.ModuleList(mlp(obs_dim, hidden, act_dim) for _ in range(gate.experts))
-        self.gate = gate
+        self.mean = mlp(obs_dim, hidden, act_dim)
         self.prior = prior
         self.noise_floor = noise_floor
         self.precision = precision
         self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
         # Small last layer: the first actions are the prior's (or the nominal pose without one).
-        for layers in self.experts if gate is not None else [self.mean]:
-            nn.init.uniform_(layers[-1].weight, -1e-3, 1e-3)
-            nn.init.zeros_(layers[-1].bias)
-
-    def network(self, obs: torch.Tensor) -> torch.Tensor:
-        """The MLP's output (the experts' blend with train.sensitivity_experts), before the prior's fade."""
-        x = self.norm(obs)
-        if self.gate is None:
-            return run_mlp(self.mean, x, self.precision)
-        each = torch.stack([run_mlp(layers, x, self.precision) for layers in self.experts], -1)  # [..., A, E]
-        return (each * self.gate(obs).unsqueeze(-2)).sum(-1)
+        nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
+        nn.init.zeros_(self.mean[-1].bias)
 
     def deviation(self, obs: torch.Tensor) -> torch.Tensor:
-        """The learned deviation: the network's share of the policy mean (all of it without a prior)."""
-        loc = self.network(obs)
+        """The learned deviation: the MLP's share of the policy mean (all of it without a prior)."""
+        loc = run_mlp(self.mean, self.norm(obs), self.precision)
         return loc if self.prior is None else loc * self.prior.residual_weight(obs)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.network(obs)
+        loc = run_mlp(self.mean, self.norm(obs), self.precision)
         scale = self.log_std.exp().expand_as(loc)
         if self.prior is not None:
             weight = self.prior.residual_weight(obs)
@@ -314,11 +264,10 @@ def make_actor(
     action_spec=None,
     noise_floor: float | None = None,
     precision: Precision = "float32",
-    gate: SensitivityGate | None = None,
 ) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
     net = TensorDictModule(
-        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision, gate),
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision),
         in_keys=["policy"],
         out_keys=["loc", "scale"],
     )
@@ -331,15 +280,6 @@ def make_actor(
         return_log_prob=True,
         log_prob_key="action_log_prob",
     )
-
-
-def config_actor(config: FallkitConfig, spec: RobotSpec, obs_dim: int, act_dim: int) -> ProbabilisticActor:
-    """The actor a training run's config asks for: networks, initial std, prior, noise fade, arithmetic, experts."""
-    tc = config.train
-    return make_actor(
-        obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, joint_prior(config, spec), noise_floor=tc.fade_noise,
-        precision=tc.precision, gate=sensitivity_gate(config, spec),
-    )  # fmt: skip
 
 
 def impact_weight_columns(spec: RobotSpec, heads: list[str], gravity: bool = False) -> list[int]:

@@ -38,7 +38,7 @@ from fallkit.machine import core_share, running_processes
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.init_from import fresh_statistics, start_from
-from fallkit.rl.models import config_actor, make_critic, policy_net, resolve_precision, value_net
+from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
@@ -76,7 +76,10 @@ class Trainer:
         log.info("networks compute in %s (train.precision)", precision)
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
-        self.actor = config_actor(config, self.spec, obs_dim, act_dim).to(self.env.device)
+        prior = joint_prior(config, self.spec)
+        self.actor = make_actor(
+            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
+        ).to(self.env.device)
         heads, weight_columns = critic_heads(config, self.spec, self.env.rewards)
         self.critic = make_critic(
             critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
