@@ -232,6 +232,40 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
     assert seen[1] == pytest.approx(kl.item(), rel=1e-4)
 
 
+def test_the_prior_penalty_pulls_the_learned_deviation_toward_the_prior(tmp_path):
+    """train.ppo.prior_coef adds β·Σ_j d_j² of the learned deviation d = mean − prior to the loss: from the same
+    weights and batch, an update with it leaves a smaller deviation than one without, and `prior_deviation`
+    logs that sum (mean over the update's minibatches); without a prior it is a one-line error."""
+    import copy
+
+    from fallkit.errors import ConfigError
+    from fallkit.rl import ppo as ppo_module
+    from fallkit.rl.models import policy_net
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config(), tmp_path / "run")
+    trainer.td = trainer.env.reset()
+    batch = trainer.collect()
+    with torch.no_grad():
+        policy_net(trainer.actor).mean[-1].bias.fill_(0.5)  # a deviation to pull back: 0.5 per joint early on
+    obs = batch["policy"].reshape(-1, batch["policy"].shape[-1])
+    left, logged = [], []
+    for coef in (0.0, 1.0):
+        actor, critic = copy.deepcopy(trainer.actor), copy.deepcopy(trainer.critic)
+        cfg = trainer.config.train.ppo.model_copy(update={"prior_coef": coef, "desired_kl": None, "learning_rate": 0.01, "epochs": 25})
+        stats = ppo_module.PPO(actor, critic, cfg, rewards=trainer.env.rewards).update(
+            batch.clone(), generator=torch.Generator().manual_seed(0)
+        )
+        with torch.no_grad():
+            left.append(policy_net(actor).deviation(obs).square().sum(-1).mean().item())
+        logged.append(stats["prior_deviation"].item())
+    assert left[1] < 0.5 * left[0]
+    assert logged[1] > left[1] > 0.0  # logged before each step, while the penalty shrinks it
+    with pytest.raises(ConfigError, match="train.prior=none"):
+        no_prior = Trainer(tiny_config("train.prior=none", "train.fade_residual=false", "train.ppo.prior_coef=0.1"), tmp_path / "none")
+        ppo_module.PPO(no_prior.actor, no_prior.critic, no_prior.config.train.ppo, rewards=no_prior.env.rewards)
+
+
 def _reads_by_fallkit(fn) -> list[str]:
     """The host reads that fallkit's own code makes while `fn` runs."""
     return [read for read in host_reads(fn) if f"{os.sep}fallkit{os.sep}" in read]

@@ -90,6 +90,13 @@ class PPOConfig(Section):
         "bootstrapped from its head, so its own γ sets how much the landing's tilt weighs at the moment the fall's "
         "side is decided; {} = `gamma` for all (measured in docs/training.md)",
     )
+    prior_coef: float = Field(
+        0.0,
+        ge=0,
+        description="β of a penalty β·Σ_j d_j² on the learned deviation d (the MLP's share of the policy mean, in "
+        "action units) of the collected samples: a pull toward the joint prior (train.prior), which already lands "
+        "the falls it can land; needs a prior; 0 = off (measured in docs/training.md)",
+    )
     value_per_component: bool = Field(
         False,
         description="with value_per_term: the impact term's value split further, one head per robot component (its "

@@ -123,14 +123,16 @@ def mirror_error(mirror: ObservationMirror, loc: torch.Tensor, mirrored_loc: tor
 
 
 class _ActorOutputs:
-    """The (loc, scale) of the policy network's latest forward pass, detached: a forward hook on the
-    network the loss module calls (ClipPPOLoss keeps its own copy of the actor, so the hook goes there)."""
+    """The (loc, scale) of the policy network's latest forward pass, detached, and its input and loc with
+    their graph (for the prior penalty): a forward hook on the network the loss module calls (ClipPPOLoss
+    keeps its own copy of the actor, so the hook goes there)."""
 
     def __init__(self, net: GaussianPolicyNet):
-        self.loc = self.scale = None
+        self.loc = self.scale = self.obs = self.graph_loc = None
         net.register_forward_hook(self._keep)
 
     def _keep(self, module, inputs, outputs) -> None:
+        self.obs, self.graph_loc = inputs[0], outputs[0]
         self.loc, self.scale = (t.detach() for t in outputs)
 
 
@@ -186,6 +188,10 @@ class PPO:
             [p for p in self.params if id(p) not in critic_ids], [p for p in self.params if id(p) in critic_ids], cfg
         )
         self.actor_outputs = _ActorOutputs(policy_net(self.loss.actor_network))
+        self.prior = policy_net(self.loss.actor_network).prior
+        if cfg.prior_coef > 0 and self.prior is None:
+            raise ConfigError("train.ppo.prior_coef pulls the policy toward its joint prior, and train.prior=none has "
+                              "none: set train.prior=seek (or hold), or train.ppo.prior_coef=0")  # fmt: skip
 
     def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
         """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures, each a scalar
@@ -195,7 +201,7 @@ class PPO:
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
         n = flat.shape[0]
         mb = n // cfg.num_minibatches
-        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction"]
+        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction", "prior_deviation"]
         if self.mirror is not None:
             names.append("mirror_loss")
         sums = torch.zeros(len(names), device=flat.device)  # read once, after the last minibatch
@@ -210,6 +216,9 @@ class PPO:
                 old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
                 out = self.loss(data)
                 loss, loss_critic = _total_loss(out, critic_net)
+                deviation = self._prior_deviation(mb)
+                if cfg.prior_coef > 0:
+                    loss = loss + cfg.prior_coef * deviation
                 # KL of this minibatch between the collecting policy and the current one, from the
                 # loss's forward pass (the collected samples only, even with the mirror or the relabelled
                 # copy: only they were drawn from the collecting policy at their inputs), before this step
@@ -230,6 +239,7 @@ class PPO:
                     out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
                     kl,
                     out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
+                    deviation,
                 ]
                 if self.mirror is not None:
                     outputs = self.actor_outputs.loc
@@ -239,6 +249,14 @@ class PPO:
         stats = dict(zip(names, sums / count)) | advantage_stats
         stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms / count
         return stats | self._state_stats(policy_net(self.actor), critic_net)
+
+    def _prior_deviation(self, rows: int) -> torch.Tensor:
+        """Σ_j d_j² of the learned deviation d = mean − prior, averaged over the loss's first `rows` inputs (the
+        collected samples), with its graph: train.ppo.prior_coef's penalty, logged as `prior_deviation`."""
+        if self.prior is None:
+            return torch.zeros((), device=self.actor_outputs.loc.device)
+        obs = self.actor_outputs.obs[:rows]
+        return (self.actor_outputs.graph_loc[:rows] - self.prior(obs)).square().sum(-1).mean()
 
     def _learning_samples(
         self, batch: TensorDict, critic_net, generator: torch.Generator | None
