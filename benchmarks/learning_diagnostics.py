@@ -12,11 +12,13 @@ evaluation) and answers three questions on the same falls its evaluation used:
    the pose, the reward would pay to keep it — the shortfall is learning, not the reward.
 3. **Does the learned deviation read the goal**: along the policy's own falls, the change of the
    learned deviation (the MLP's share of the action) when each fall's end pose is replaced by
-   another fall's, relative to its size, by time.
+   another fall's, relative to its size, by time; and its size, Σ_j d_j² averaged over the falls' steps
+   (`deviation_sq`: what `prior_deviation` in metrics.csv averages over the training samples, and what
+   train.ppo.prior_coef penalises).
 
     python benchmarks/learning_diagnostics.py RUN_DIR   # e.g. runs/learning_power8/<time>/seed0
 
-The last line is one JSON object (`easy_kept`, `hard_fixed`, `returns`, `goal_dependence`).
+The last line is one JSON object (`easy_kept`, `hard_fixed`, `returns`, `goal_dependence`, `deviation_sq`).
 """
 
 from __future__ import annotations
@@ -48,16 +50,16 @@ def fall_groups(trials: np.lib.npyio.NpzFile) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None]]:
-    """(total, orientation) return of policy and seek per fall, and the goal dependence by step
-    (None once the learned deviation has faded out)."""
+def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None], float]:
+    """(total, orientation) return of policy and seek per fall, the goal dependence by step (None once the
+    learned deviation has faded out), and Σ_j d_j² of the learned deviation averaged over the falls' steps."""
     k, net = len(trials), setup.policy.module.net
     cols = actor_slices(env.spec, env.observes_sensitivity, env.observes_gravity)
     goal = torch.cat([torch.arange(cols[n].start, cols[n].stop) for n in ("goal_root_quat", "goal_joint_pos")])
     other = torch.roll(torch.arange(k), 1)  # each fall's end pose replaced by the previous fall's
     td = env.reset_to(trials.qpos.repeat(2, 1), trials.qvel.repeat(2, 1), trials.pose_ids.repeat(2))
     start_q = env.sim.state.joint_pos.clone()
-    total, orientation, dependence = torch.zeros(2 * k), torch.zeros(2 * k), []
+    total, orientation, dependence, squared = torch.zeros(2 * k), torch.zeros(2 * k), [], []
     weight = setup.config.reward.orientation
     # −‖R(θ)ᵀe_z − R(θ̂)ᵀe_z‖², the orientation term's tilt distance, read off the critic observation
     tilt = OrientationPotential(env.spec, 1.0, env.observes_sensitivity, env.observes_gravity)
@@ -67,6 +69,7 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
         swapped[:, goal] = obs[other][:, goal]
         deviation = [net.deviation(o) for o in (obs, swapped)]
         size = deviation[0].norm(dim=-1).mean()
+        squared.append(deviation[0].square().sum(-1).mean().item())
         dependence.append(((deviation[0] - deviation[1]).norm(dim=-1).mean() / size).item() if size > 0 else None)
         action = torch.empty_like(env.last_action)
         action[:k] = setup.policy(td[:k].select("policy"))["action"]
@@ -76,7 +79,7 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
         total += td["reward"].view(-1)
         orientation += weight * env.dt * env.tracking_blend() * tilt(td["critic"]).view(-1)
     returns = {"policy": (total[:k].numpy(), orientation[:k].numpy()), "seek": (total[k:].numpy(), orientation[k:].numpy())}
-    return returns, dependence
+    return returns, dependence, float(np.mean(squared))
 
 
 def main() -> None:
@@ -97,7 +100,7 @@ def main() -> None:
     env = make_env(run_config, robot_spec(run_config.robot), split=setup.split, seed=config.eval.seed,
                    num_envs=2 * k, poses=setup.poses)  # fmt: skip
     trials = draw_trials(env, k, config.eval.seed)
-    returns, dependence = replay(setup, env, trials)
+    returns, dependence, deviation_sq = replay(setup, env, trials)
     groups = fall_groups(per_fall)
     pol = per_fall["policy/mroe"]
     out = {"run": str(args.run), "falls": k, "groups": {g: int(m.sum()) for g, m in groups.items()},
@@ -117,6 +120,8 @@ def main() -> None:
                               for t in range(0, len(dependence), steps)}  # fmt: skip
     print("learned deviation's change with another fall's end pose, relative to its size, by time [s]:",
           ", ".join(f"{t}: {'faded' if v is None else f'{v:.2f}'}" for t, v in out["goal_dependence"].items()))  # fmt: skip
+    out["deviation_sq"] = round(deviation_sq, 4)
+    print(f"learned deviation's size, Σ_j d_j² averaged over the falls' steps: {deviation_sq:.4f}")
     print(json.dumps(out))
 
 
