@@ -15,10 +15,16 @@ evaluation) and answers three questions on the same falls its evaluation used:
    another fall's, relative to its size, by time; and its size, Σ_j d_j² averaged over the falls' steps
    (`deviation_sq`: what `prior_deviation` in metrics.csv averages over the training samples, and what
    train.ppo.prior_coef penalises).
+4. **Does the training's own noise hide the easy falls**: the policy's mean and seek replayed on the same
+   falls with Gaussian action noise at the policy's trained std added at every step (what training explores
+   with; the evaluation has none), `--noise-repeats` times each: the shares of seek's easy falls each keeps
+   and of the hard ones each fixes (`under_noise`). If seek under that noise lost its easy falls as often as
+   the policy loses them, the training falls would not show that the prior lands them.
 
     python benchmarks/learning_diagnostics.py RUN_DIR   # e.g. runs/learning_power8/<time>/seed0
 
-The last line is one JSON object (`easy_kept`, `hard_fixed`, `returns`, `goal_dependence`, `deviation_sq`).
+The last line is one JSON object (`easy_kept`, `hard_fixed`, `returns`, `goal_dependence`, `deviation_sq`,
+`under_noise`).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from fallkit.config import validate
 from fallkit.env.build import make_env
 from fallkit.env.observations import actor_slices
 from fallkit.eval.evaluate import eval_run_config, prepare
+from fallkit.eval.metrics import mroe
 from fallkit.eval.rollout import draw_trials
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
@@ -82,9 +89,31 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
     return returns, dependence, float(np.mean(squared))
 
 
+@torch.no_grad()
+def tilt_errors_under_noise(setup, run_config, trials, repeats: int, seed: int) -> dict[str, np.ndarray]:
+    """Final orientation error [repeats, k] of the policy's mean and of seek on the `trials` falls, each with
+    N(0, σ²) added to every action, σ the policy's trained std per joint (its exploration in training)."""
+    k, std = len(trials), setup.policy.module.net.log_std.exp()
+    blocks = 2 * repeats  # policy, seek, policy, seek, ...
+    env = make_env(run_config, robot_spec(run_config.robot), split=setup.split, seed=setup.config.eval.seed,
+                   num_envs=blocks * k, poses=setup.poses)  # fmt: skip
+    is_seek = (torch.arange(blocks * k) // k % 2 == 1)[:, None]
+    td = env.reset_to(trials.qpos.repeat(blocks, 1), trials.qvel.repeat(blocks, 1), trials.pose_ids.repeat(blocks))
+    start_q, g = env.sim.state.joint_pos.clone(), torch.Generator().manual_seed(seed)
+    for _ in range(env.max_steps):
+        seek = env.action_for_setpoint(torch.lerp(start_q, env.goal_joint_pos, env.tracking_blend()[:, None]))
+        action = torch.where(is_seek, seek, setup.policy(td.select("policy"))["action"])
+        action = action + std * torch.randn(action.shape, generator=g)
+        td = env.step(td.set("action", action))["next"]
+    target = env.end_poses.root_quat[trials.pose_ids.repeat(blocks).to(env.device)]
+    error = mroe(env.sim.state.root_quat, target).numpy().reshape(repeats, 2, k)
+    return {"policy": error[:, 0], "seek": error[:, 1]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="a training run directory with checkpoints/ and eval_trials.npz")
+    ap.add_argument("--noise-repeats", type=int, default=2, help="replays of the falls under the training's noise")
     args = ap.parse_args()
     per_fall = np.load(args.run / "eval_trials.npz")
     if "seek/mroe" not in per_fall.files:
@@ -122,6 +151,15 @@ def main() -> None:
           ", ".join(f"{t}: {'faded' if v is None else f'{v:.2f}'}" for t, v in out["goal_dependence"].items()))  # fmt: skip
     out["deviation_sq"] = round(deviation_sq, 4)
     print(f"learned deviation's size, Σ_j d_j² averaged over the falls' steps: {deviation_sq:.4f}")
+    if args.noise_repeats > 0:
+        noisy = tilt_errors_under_noise(setup, run_config, trials, args.noise_repeats, config.eval.seed)
+        easy, hard = groups["easy"], groups["hard"]
+        out["under_noise"] = {who: {"easy_kept": round(float(np.mean(e[:, easy] <= EASY)), 3),
+                                    "hard_fixed": round(float(np.mean(e[:, hard] <= EASY)), 3)}
+                              for who, e in noisy.items()}  # fmt: skip
+        print(f"under the training's action noise ({args.noise_repeats} replays): " + "; ".join(
+            f"{who} keeps {v['easy_kept']:.0%} of the easy falls, fixes {v['hard_fixed']:.0%} of the hard"
+            for who, v in out["under_noise"].items()))  # fmt: skip
     print(json.dumps(out))
 
 
