@@ -90,7 +90,9 @@ def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
     assert paper.train.prior == "none" and not paper.env.observe_blend and paper.train.init_noise_std == 1.0
     assert paper.sim.num_envs == 4096 and paper.train.actor_hidden == [512, 512, 512] and not paper.train.fade_residual
     assert paper.train.precision == "float32" and composed().train.precision == "auto"
-    table_iii = PPOConfig(critic_learning_rate=None, value_clip=0.2, normalize_value=False, value_per_term=False)
+    table_iii = PPOConfig(critic_learning_rate=None, value_clip=0.2, normalize_value=False, value_per_term=False,
+                          prior_coef=0.0)  # fmt: skip
+    assert composed().train.ppo.prior_coef == composed("train=quick").train.ppo.prior_coef == 0.03
     assert composed().train.ppo.value_per_term and composed("train=quick").train.ppo.value_per_term
     assert not paper.env.observe_gravity and not paper.env.sensitivity_inputs.enabled
     assert paper.train.ppo == table_iii and (table_iii.num_minibatches, table_iii.epochs, table_iii.desired_kl) == (4, 5, 0.01)
@@ -99,3 +101,9 @@ def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
     with pytest.raises(ConfigError, match="train.fade_residual fades the MLP"):
         composed("env.observe_blend=false", "train.prior=hold")
     assert composed("env.observe_blend=false", "train.prior=hold", "train.fade_residual=false").train.prior == "hold"
+    # the paper's MLP alone: every setting that needs a prior is named in one line, and off they compose
+    with pytest.raises(ConfigError, match="no prior for train.fade_residual and train.ppo.prior_coef: set"):
+        composed("train.prior=none")
+    with pytest.raises(ConfigError, match="no prior for train.ppo.prior_coef: set"):
+        composed("train.prior=none", "train.fade_residual=false")
+    assert composed("train.prior=none", "train.fade_residual=false", "train.ppo.prior_coef=0").train.prior == "none"

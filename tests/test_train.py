@@ -235,7 +235,7 @@ def test_the_kl_that_sets_the_learning_rate_is_the_exact_kl_of_the_current_polic
 def test_the_prior_penalty_pulls_the_learned_deviation_toward_the_prior(tmp_path):
     """train.ppo.prior_coef adds β·Σ_j d_j² of the learned deviation d = mean − prior to the loss: from the same
     weights and batch, an update with it leaves a smaller deviation than one without, and `prior_deviation`
-    logs that sum (mean over the update's minibatches); without a prior it is a one-line error."""
+    logs that sum (mean over the update's minibatches); without a prior it is a one-line error of the config."""
     import copy
 
     from fallkit.errors import ConfigError
@@ -261,9 +261,8 @@ def test_the_prior_penalty_pulls_the_learned_deviation_toward_the_prior(tmp_path
         logged.append(stats["prior_deviation"].item())
     assert left[1] < 0.5 * left[0]
     assert logged[1] > left[1] > 0.0  # logged before each step, while the penalty shrinks it
-    with pytest.raises(ConfigError, match="train.prior=none"):
-        no_prior = Trainer(tiny_config("train.prior=none", "train.fade_residual=false", "train.ppo.prior_coef=0.1"), tmp_path / "none")
-        ppo_module.PPO(no_prior.actor, no_prior.critic, no_prior.config.train.ppo, rewards=no_prior.env.rewards)
+    with pytest.raises(ConfigError, match="train.prior=none leaves no prior for train.ppo.prior_coef"):
+        tiny_config("train.prior=none", "train.fade_residual=false", "train.ppo.prior_coef=0.1")
 
 
 def _reads_by_fallkit(fn) -> list[str]:

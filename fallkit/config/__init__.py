@@ -65,10 +65,16 @@ class FallkitConfig(Section):
                 "train.prior=seek blends by u(t), which the actor then must observe: set env.observe_blend=true "
                 "or train.prior=hold|none"
             )
-        if self.train.fade_residual and (self.train.prior == "none" or not self.env.observe_blend):
+        needs_prior = [f"train.{k}" for k, on in (("fade_residual", self.train.fade_residual),
+                                                  ("ppo.prior_coef", self.train.ppo.prior_coef > 0)) if on]  # fmt: skip
+        if self.train.prior == "none" and needs_prior:
             raise ValueError(
-                "train.fade_residual fades the MLP into a prior by u(t): it needs train.prior=hold|seek and "
-                "env.observe_blend=true"
+                f"train.prior=none leaves no prior for {' and '.join(needs_prior)}: set train.fade_residual=false "
+                "train.ppo.prior_coef=0 (the MLP alone, as train=paper does), or train.prior=hold|seek"
+            )
+        if self.train.fade_residual and not self.env.observe_blend:
+            raise ValueError(
+                "train.fade_residual fades the MLP into a prior by u(t): it needs env.observe_blend=true"
             )
         if self.train.fade_noise is not None and not self.train.fade_residual:
             raise ValueError(

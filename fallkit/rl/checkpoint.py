@@ -100,6 +100,7 @@ def _defaults_of_their_time(config: dict | None) -> None:
         config["train"].setdefault("precision", "float32")  # train.precision came later
         if isinstance(config["train"].get("ppo"), dict):
             config["train"]["ppo"].setdefault("value_per_term", False)  # one value of the whole return before
+            config["train"]["ppo"].setdefault("prior_coef", 0.0)  # no pull toward the prior before
 
 
 def checkpoint_run_dir(path: str | Path) -> Path | None:

@@ -188,10 +188,9 @@ class PPO:
             [p for p in self.params if id(p) not in critic_ids], [p for p in self.params if id(p) in critic_ids], cfg
         )
         self.actor_outputs = _ActorOutputs(policy_net(self.loss.actor_network))
+        # train.ppo.prior_coef's pull toward it; without a prior there is none to pull toward (a config with
+        # train.prior=none and prior_coef > 0 is refused in one line: FallkitConfig)
         self.prior = policy_net(self.loss.actor_network).prior
-        if cfg.prior_coef > 0 and self.prior is None:
-            raise ConfigError("train.ppo.prior_coef pulls the policy toward its joint prior, and train.prior=none has "
-                              "none: set train.prior=seek (or hold), or train.ppo.prior_coef=0")  # fmt: skip
 
     def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
         """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures, each a scalar
