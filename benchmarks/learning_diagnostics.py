@@ -42,7 +42,7 @@ from fallkit.env.build import make_env
 from fallkit.env.observations import actor_slices
 from fallkit.eval.evaluate import eval_run_config, prepare
 from fallkit.eval.metrics import mroe
-from fallkit.eval.rollout import draw_trials
+from fallkit.eval.rollout import draw_trials, seek_action
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -80,8 +80,7 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
         dependence.append(((deviation[0] - deviation[1]).norm(dim=-1).mean() / size).item() if size > 0 else None)
         action = torch.empty_like(env.last_action)
         action[:k] = setup.policy(td[:k].select("policy"))["action"]
-        u = env.tracking_blend()[k:, None]
-        action[k:] = env.action_for_setpoint(torch.lerp(start_q[k:], env.goal_joint_pos[k:], u))
+        action[k:] = seek_action(env, start_q, slice(k, None))
         td = env.step(td.set("action", action))["next"]
         total += td["reward"].view(-1)
         orientation += weight * env.dt * env.tracking_blend() * tilt(td["critic"]).view(-1)
@@ -97,12 +96,12 @@ def tilt_errors_under_noise(setup, run_config, trials, repeats: int, seed: int) 
     blocks = 2 * repeats  # policy, seek, policy, seek, ...
     env = make_env(run_config, robot_spec(run_config.robot), split=setup.split, seed=setup.config.eval.seed,
                    num_envs=blocks * k, poses=setup.poses)  # fmt: skip
-    is_seek = (torch.arange(blocks * k) // k % 2 == 1)[:, None]
+    policy_rows = torch.arange(blocks * k) // k % 2 == 0
     td = env.reset_to(trials.qpos.repeat(blocks, 1), trials.qvel.repeat(blocks, 1), trials.pose_ids.repeat(blocks))
     start_q, g = env.sim.state.joint_pos.clone(), torch.Generator().manual_seed(seed)
     for _ in range(env.max_steps):
-        seek = env.action_for_setpoint(torch.lerp(start_q, env.goal_joint_pos, env.tracking_blend()[:, None]))
-        action = torch.where(is_seek, seek, setup.policy(td.select("policy"))["action"])
+        action = seek_action(env, start_q)
+        action[policy_rows] = setup.policy(td[policy_rows].select("policy"))["action"]
         action = action + std * torch.randn(action.shape, generator=g)
         td = env.step(td.set("action", action))["next"]
     target = env.end_poses.root_quat[trials.pose_ids.repeat(blocks).to(env.device)]

@@ -126,8 +126,7 @@ def rollout(
         if rows is not None:
             action[rows] = policy(td[rows].select("policy"))["action"]
         if seek is not None:
-            u = env.tracking_blend()[seek, None]
-            action[seek] = env.action_for_setpoint(torch.lerp(start_q[seek], env.goal_joint_pos[seek], u))
+            action[seek] = seek_action(env, start_q, seek)
         td = env.step(td.set("action", action))["next"]
         rec.record(t, env.sim.state, env.setpoint(action))
         if progress is not None:
@@ -135,6 +134,13 @@ def rollout(
         if on_step is not None:
             on_step(t, env.sim.state)
     return rec.result(env, trials, strategies)
+
+
+def seek_action(env: FallEnv, start_q: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
+    """The seek reference's action in worlds `rows` now: the joints at the fall's start (`start_q`, all worlds)
+    blended into the target joints by the tracking blend u(t), at nominal gains; no learning."""
+    u = env.tracking_blend()[rows, None]
+    return env.action_for_setpoint(torch.lerp(start_q[rows], env.goal_joint_pos[rows], u))
 
 
 def _check_blocks(env: FallEnv, strategies: list[str], k: int, policy: TensorDictModuleBase | None) -> None:
