@@ -29,6 +29,11 @@ class PPOConfig(Section):
     lr_min: float = Field(1e-5, gt=0)
     lr_max: float = Field(1e-2, gt=0)
     max_grad_norm: float = Field(1.0, gt=0)
+    clip_per_network: bool = Field(
+        False,
+        description="clip the actor's and the critic's gradients to max_grad_norm each by its own norm; false = one "
+        "clip over both (rsl_rl, the paper), where the critic's norm, ~200x the actor's, sets the actor's scale",
+    )
     value_coef: float = Field(1.0, ge=0)
     value_clip: float | None = Field(
         None, gt=0, description="clip of the value prediction's change per update (rsl_rl's clipped value loss); null = off"

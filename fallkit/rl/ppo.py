@@ -5,9 +5,9 @@ One call of `PPO.update(batch)` is one iteration's learning:
   1. GAE over the [num_envs, num_steps] batch (bootstrapping at truncation: episodes
      only end by time, so "terminated" stays False and the value of the last state
      is used).
-  2. `epochs` passes over `num_minibatches` shuffled minibatches: clipped surrogate +
-     clipped value loss (+ entropy if its coefficient is not 0), gradients clipped to
-     `max_grad_norm`.
+  2. `epochs` passes over `num_minibatches` shuffled minibatches: clipped surrogate + clipped value loss
+     (+ entropy if its coefficient is not 0), gradients clipped to `max_grad_norm` (over both networks at
+     once, or each by its own norm with `clip_per_network`).
   3. Before each minibatch's step, the KL between the collecting policy and the
      current one (exact, for diagonal Gaussians) adapts the learning rate as rsl_rl
      does: KL > 2·target → lr / 1.5, KL < target / 2 → lr · 1.5, within [lr_min, lr_max].
@@ -228,8 +228,12 @@ class PPO:
                 self.optimizer.zero_grad()
                 loss.backward()
                 average_gradients(self.params)
-                grad_norms += self._group_grad_norms()
-                torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+                grad_norms += (norms := self._group_grad_norms())
+                if cfg.clip_per_network:
+                    for group, norm in zip(self.optimizer.param_groups, norms):
+                        torch.nn.utils.clip_grads_with_norm_(group["params"], cfg.max_grad_norm, norm)
+                else:
+                    torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.optimizer.step()
 
                 figures = [
@@ -352,14 +356,10 @@ class PPO:
         return stats
 
     def _group_grad_norms(self) -> torch.Tensor:
-        """[actor, critic] gradient norms before clipping: one clip over both, so a critic whose
+        """[actor, critic] gradient norms before clipping: with one clip over both, a critic whose
         gradients dwarf the actor's shrinks the actor's step too — these say when it does."""
-        return torch.stack(
-            [
-                torch.nn.utils.get_total_norm([p.grad for p in group["params"] if p.grad is not None])
-                for group in self.optimizer.param_groups
-            ]
-        )
+        grads = [[p.grad for p in group["params"] if p.grad is not None] for group in self.optimizer.param_groups]
+        return torch.stack([torch.nn.utils.get_total_norm(g) for g in grads])
 
     def _with_mirror_image(self, data: TensorDict) -> TensorDict:
         """The minibatch followed by its mirror image (what the loss reads, nothing else).
