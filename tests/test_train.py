@@ -265,6 +265,36 @@ def test_the_prior_penalty_pulls_the_learned_deviation_toward_the_prior(tmp_path
         tiny_config("train.prior=none", "train.fade_residual=false", "train.ppo.prior_coef=0.1")
 
 
+@pytest.mark.parametrize("per_network", [False, True])
+def test_gradients_are_clipped_over_both_networks_or_each_by_its_own_norm(tmp_path, per_network):
+    """max_grad_norm bounds the norm over both networks (the paper's, rsl_rl's), where the critic's gradient,
+    far larger, leaves the actor a fraction of the bound; with train.ppo.clip_per_network each network's own
+    norm is bounded, so the actor keeps the whole bound. Read at every optimizer step, after the clip."""
+    from fallkit.rl import ppo as ppo_module
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config(), tmp_path / "run")
+    trainer.td = trainer.env.reset()
+    batch = trainer.collect()
+    cfg = trainer.config.train.ppo.model_copy(update={"max_grad_norm": 1e-3, "clip_per_network": per_network})
+    ppo = ppo_module.PPO(trainer.actor, trainer.critic, cfg, rewards=trainer.env.rewards)
+    norms = []
+
+    def record(optimizer, args, kwargs):
+        norms.append([torch.nn.utils.get_total_norm([p.grad for p in g["params"]]).item() for g in optimizer.param_groups])
+
+    ppo.optimizer.optimizer.register_step_pre_hook(record)
+    ppo.update(batch.clone(), generator=torch.Generator().manual_seed(0))
+    actor, critic = torch.tensor(norms).T
+    assert len(norms) == cfg.epochs * cfg.num_minibatches
+    if per_network:
+        assert torch.allclose(actor, torch.full_like(actor, 1e-3), rtol=1e-3)
+        assert torch.allclose(critic, torch.full_like(critic, 1e-3), rtol=1e-3)
+    else:
+        assert torch.allclose(actor.hypot(critic), torch.full_like(actor, 1e-3), rtol=1e-3)
+        assert (actor < 0.5e-3).all()
+
+
 def _reads_by_fallkit(fn) -> list[str]:
     """The host reads that fallkit's own code makes while `fn` runs."""
     return [read for read in host_reads(fn) if f"{os.sep}fallkit{os.sep}" in read]

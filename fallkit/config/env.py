@@ -168,6 +168,15 @@ class EnvConfig(Section):
     pose_fraction: float = Field(
         1.0, gt=0, le=1, description="fraction of the training split used (dataset-size ablation)"
     )
+    heading_end_poses: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="share of training episodes whose end pose is, of heading_candidates drawn uniformly, the one "
+        "lying closest to where the fall heads (its capture point; fallkit.env.samplers.end_pose); 0 = every end "
+        "pose drawn uniformly (the paper). Evaluation is unaffected: it resets to given falls and end poses",
+    )
+    heading_candidates: int = Field(8, ge=2, description="end poses drawn per heading choice (heading_end_poses)")
     noise: ObservationNoise = Field(default_factory=ObservationNoise)
     initial_state: InitialStateConfig = Field(default_factory=InitialStateConfig)
     disturbances: DisturbanceConfig = Field(default_factory=DisturbanceConfig)

@@ -52,6 +52,7 @@ from fallkit.env.observations import (
 from fallkit.env.randomization import EpisodeRandomization, SensitivityDraw
 from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.env.rewards.tracking import blend
+from fallkit.env.samplers.end_pose import EndPoseDraw
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import tilt_quat
@@ -226,7 +227,7 @@ class FallEnv(EnvBase):
         if not ids.numel():
             return False
         qpos, qvel = self.initial_states.sample(ids.numel(), self._cpu_gen)
-        poses = torch.randint(len(self.end_poses), (ids.numel(),), generator=self._gen, device=self.device)
+        poses = self.end_pose_draw(qpos, qvel, self._gen)
         self._reset_worlds(mask, ids, qpos, qvel, poses)
         return True
 
@@ -291,7 +292,7 @@ class FallEnv(EnvBase):
 
     def _make_samplers_and_rewards(self) -> None:
         """The registered initial-state sampler, the disturbances (if enabled and the robot
-        names bodies to push) and the reward terms."""
+        names bodies to push), the reward terms and the training episodes' end-pose draw."""
         spec, env_cfg, load = self.spec, self.env_cfg, registry.load
         self.initial_states = load("fallkit.samplers", env_cfg.samplers["initial_state"])(
             spec, **env_cfg.initial_state.model_dump()
@@ -304,6 +305,8 @@ class FallEnv(EnvBase):
             if self.disturbances.body_ids.numel() == 0:  # the robot names none of the roles
                 self.disturbances = None
         self.rewards = RewardSum(self.reward_cfg, self.dt, self.device, components=spec.component_names)
+        draw = env_cfg.heading_end_poses, env_cfg.heading_candidates
+        self.end_pose_draw = EndPoseDraw(spec, self.end_poses.root_quat, *draw)
 
     def _make_constants(self) -> None:
         """Robot and goal constants on the device: nominal pose, joint limits, sensitivity,
