@@ -267,9 +267,9 @@ def test_the_prior_penalty_pulls_the_learned_deviation_toward_the_prior(tmp_path
 
 @pytest.mark.parametrize("per_network", [False, True])
 def test_gradients_are_clipped_over_both_networks_or_each_by_its_own_norm(tmp_path, per_network):
-    """max_grad_norm bounds the norm over both networks (the paper's, rsl_rl's), where the critic's gradient,
-    far larger, leaves the actor a fraction of the bound; with train.ppo.clip_per_network each network's own
-    norm is bounded, so the actor keeps the whole bound. Read at every optimizer step, after the clip."""
+    """max_grad_norm bounds the norm over both networks (the paper's, rsl_rl's), so each network gets a fraction
+    of the bound, set by the other's gradient (in training runs the critic's is 10-200x the actor's); with
+    train.ppo.clip_per_network each network's own norm is bounded. Read at every optimizer step, after the clip."""
     from fallkit.rl import ppo as ppo_module
     from fallkit.rl.trainer import Trainer
 
@@ -292,7 +292,7 @@ def test_gradients_are_clipped_over_both_networks_or_each_by_its_own_norm(tmp_pa
         assert torch.allclose(critic, torch.full_like(critic, 1e-3), rtol=1e-3)
     else:
         assert torch.allclose(actor.hypot(critic), torch.full_like(actor, 1e-3), rtol=1e-3)
-        assert (actor < 0.5e-3).all()
+        assert (actor < 0.999e-3).all() and (critic < 0.999e-3).all()
 
 
 def _reads_by_fallkit(fn) -> list[str]:
