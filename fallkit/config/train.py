@@ -32,7 +32,7 @@ class PPOConfig(Section):
     clip_per_network: bool = Field(
         False,
         description="clip the actor's and the critic's gradients to max_grad_norm each by its own norm; false = one "
-        "clip over both (rsl_rl, the paper), where the critic's norm, ~200x the actor's, sets the actor's scale",
+        "clip over both (rsl_rl, the paper), where the critic's norm (10-200x the actor's) sets the actor's scale",
     )
     value_coef: float = Field(1.0, ge=0)
     value_clip: float | None = Field(
