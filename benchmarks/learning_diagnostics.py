@@ -5,7 +5,11 @@ evaluation) and answers three questions on the same falls its evaluation used:
 
 1. **Which falls**: seek (the open-loop blend to the target joints, no learning) lands some falls
    within 0.5 rad of the target tilt ("easy") and ends others beyond 2 rad ("hard"). What share
-   of the easy ones does the policy keep, and what share of the hard ones does it fix?
+   of the easy ones does the policy keep, and what share of the hard ones does it fix? And the other
+   way round (`seek_keeps_policys`): of the falls the policy lands within 0.5 rad, what share does seek
+   land? "Easy" is chosen by seek's own outcome, so a policy as good as seek but not seek keeps fewer of
+   them whenever small differences change where a fall ends; the two shares alike say that is what the
+   loss is, not a habit of the policy.
 2. **What the reward says**: the policy and seek replayed on those falls with the training
    reward switched on (the evaluation switches it off): undiscounted return, split into the
    orientation term and all the rest, per group. If the policy's return is lower where it loses
@@ -23,8 +27,8 @@ evaluation) and answers three questions on the same falls its evaluation used:
 
     python benchmarks/learning_diagnostics.py RUN_DIR   # e.g. runs/learning_power8/<time>/seed0
 
-The last line is one JSON object (`easy_kept`, `hard_fixed`, `returns`, `goal_dependence`, `deviation_sq`,
-`under_noise`).
+The last line is one JSON object (`easy_kept`, `hard_fixed`, `seek_keeps_policys`, `returns`, `goal_dependence`,
+`deviation_sq`, `under_noise`).
 """
 
 from __future__ import annotations
@@ -133,9 +137,11 @@ def main() -> None:
     pol = per_fall["policy/mroe"]
     out = {"run": str(args.run), "falls": k, "groups": {g: int(m.sum()) for g, m in groups.items()},
            "easy_kept": float(np.mean(pol[groups["easy"]] <= EASY)),
-           "hard_fixed": float(np.mean(pol[groups["hard"]] <= EASY)), "returns": {}}  # fmt: skip
+           "hard_fixed": float(np.mean(pol[groups["hard"]] <= EASY)),
+           "seek_keeps_policys": float(np.mean(per_fall["seek/mroe"][pol <= EASY] < EASY)), "returns": {}}  # fmt: skip
     print(f"{args.run}: seek lands {groups['easy'].sum()} of {k} falls within {EASY} rad; the policy keeps "
-          f"{out['easy_kept']:.0%} of them and fixes {out['hard_fixed']:.0%} of the {groups['hard'].sum()} beyond {HARD} rad")  # fmt: skip
+          f"{out['easy_kept']:.0%} of them and fixes {out['hard_fixed']:.0%} of the {groups['hard'].sum()} beyond {HARD} rad; "
+          f"of the {int((pol <= EASY).sum())} it lands within {EASY} rad, seek lands {out['seek_keeps_policys']:.0%}")  # fmt: skip
     print(f"{'falls':10s} {'n':>4s}  return policy / seek   orientation policy / seek   the rest policy / seek")
     for g, m in groups.items():
         row = {s: {"return": float(t[m].mean()), "orientation": float(o[m].mean())} for s, (t, o) in returns.items()}
