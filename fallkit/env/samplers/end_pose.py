@@ -1,11 +1,13 @@
 """Which end pose a training episode falls toward.
 
-The paper draws it uniformly from the training split, whatever the fall's initial state. Trained
-policies lose many of the falls the open-loop seek lands right: they roll them over to spread the
-impact (docs/training.md, "Where orientation is lost"). With `env.heading_end_poses = q`, a share q
-of the training episodes instead take, of `env.heading_candidates` poses drawn uniformly, the one
-lying closest to where the fall is heading (its capture point, `fallkit.pose_choice`): more
-training falls whose end pose lies the way they fall, the case those policies get wrong.
+The paper draws it uniformly from the training split, whatever the fall's initial state. With
+`env.heading_end_poses = q`, a share q of the training episodes instead take, of
+`env.heading_candidates` poses drawn uniformly, the one lying closest to where the fall is heading
+(its capture point, `fallkit.pose_choice`): more training falls whose end pose lies the way they
+fall. It was built because trained policies seemed to lose many of the falls the open-loop seek
+lands right; measured, it kept no more of them and turned fewer of the others, and that split turned
+out to select on seek's own outcome (docs/training.md: "Training end poses paired with the way the
+fall heads", "The easy falls, the other way round"). Off by default.
 
 Only the training draw changes. Evaluation, render and sim2sim reset their worlds to given falls
 and end poses (`FallEnv.reset_to`), so the task they measure is the paper's.
