@@ -37,7 +37,7 @@ def base_frame_states(biped, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_without_a_share_the_draw_is_the_papers_uniform_one_number_for_number(biped, poses, falls):
-    draw = EndPoseDraw(biped, poses.root_quat)
+    draw = EndPoseDraw(poses.root_quat, Layout(biped))
     ids = draw(*falls, torch.Generator().manual_seed(5))
     assert torch.equal(ids, torch.randint(len(poses), (256,), generator=torch.Generator().manual_seed(5)))
 
@@ -46,7 +46,7 @@ def test_each_heading_choice_is_the_candidate_the_capture_point_picks(biped, pos
     """Of the poses drawn for a world, the one `fallkit.pose_choice.choose_by_heading` (eval.scorer=heading, the
     deployed controller's choice) picks; the rest keep their first draw."""
     k, share = 8, 0.5
-    ids = EndPoseDraw(biped, poses.root_quat, share, k)(*falls, torch.Generator().manual_seed(5))
+    ids = EndPoseDraw(poses.root_quat, Layout(biped), share, k)(*falls, torch.Generator().manual_seed(5))
     g = torch.Generator().manual_seed(5)
     drawn, heading = torch.randint(len(poses), (256, k), generator=g), torch.rand(256, generator=g) < share
     quat, lin_vel = base_frame_states(biped, *falls)
@@ -65,7 +65,7 @@ def test_a_share_of_one_gives_falls_end_poses_lying_the_way_they_fall(biped, pos
     grounds = ground_directions(poses.root_quat.double().numpy())
 
     def mean_angle(share: float) -> float:
-        ids = EndPoseDraw(biped, poses.root_quat, share, 8)(*falls, torch.Generator().manual_seed(5)).numpy()
+        ids = EndPoseDraw(poses.root_quat, Layout(biped), share, 8)(*falls, torch.Generator().manual_seed(5)).numpy()
         return math.degrees(np.arccos(np.clip(np.sum(heads * grounds[ids], axis=1), -1, 1)).mean())
 
     uniform, heading = mean_angle(0.0), mean_angle(1.0)

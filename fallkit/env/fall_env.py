@@ -306,7 +306,7 @@ class FallEnv(EnvBase):
                 self.disturbances = None
         self.rewards = RewardSum(self.reward_cfg, self.dt, self.device, components=spec.component_names)
         draw = env_cfg.heading_end_poses, env_cfg.heading_candidates
-        self.end_pose_draw = EndPoseDraw(spec, self.end_poses.root_quat, *draw)
+        self.end_pose_draw = EndPoseDraw(self.end_poses.root_quat, self.sim.layout, *draw)
 
     def _make_constants(self) -> None:
         """Robot and goal constants on the device: nominal pose, joint limits, sensitivity,

@@ -77,6 +77,7 @@ class BatchSim(Protocol):
     device: torch.device
     substeps: int
     num_unstable: int  # worlds found unstable and reset since construction
+    layout: Layout  # index maps between MuJoCo's layout and policy order
 
     @property
     def state(self) -> SimState: ...

@@ -18,7 +18,6 @@ from __future__ import annotations
 import torch
 
 from fallkit.pose_choice import ground_directions, predicted_ground
-from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import quat_rotate_inverse
 from fallkit.sim.base import Layout
 
@@ -26,11 +25,11 @@ from fallkit.sim.base import Layout
 class EndPoseDraw:
     """End-pose ids for restarting worlds, given their initial states."""
 
-    def __init__(self, spec: RobotSpec, root_quat: torch.Tensor, share: float = 0.0, candidates: int = 8):
-        self.count, self.share, self.candidates = root_quat.shape[0], share, candidates
-        self.layout = Layout(spec) if share > 0 else None
+    def __init__(self, root_quat: torch.Tensor, layout: Layout, share: float = 0.0, candidates: int = 8):
+        """root_quat [P, 4]: the end poses'; layout: the simulator's (where the root sits in qpos and qvel)."""
+        self.count, self.layout, self.share, self.candidates = root_quat.shape[0], layout, share, candidates
         # each pose's side facing the ground, in its root frame [P, 3]: what the capture point is compared with
-        self.ground = torch.from_numpy(ground_directions(root_quat.detach().cpu().double().numpy()))
+        self.ground = torch.from_numpy(ground_directions(root_quat.detach().cpu().double().numpy())) if share else None
 
     def __call__(self, qpos: torch.Tensor, qvel: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """[n] ids for n worlds starting at MuJoCo-layout (qpos, qvel) [n, nq], [n, nv] (CPU, float64)."""
