@@ -46,7 +46,12 @@ def test_same_seed_same_iterations_bit_for_bit(tmp_path):
     assert any(not torch.equal(actor_of(a)[k], actor_of(c)[k]) for k in actor_of(a))  # the seed matters
 
 
-@pytest.mark.parametrize("noise", [[], ["train.noise_correlation_time=0.1"]], ids=["white", "correlated"])
+REPLAY = ["train.level_replay.share=0.5", "train.level_replay.size=4"]
+
+
+@pytest.mark.parametrize(
+    "noise", [[], ["train.noise_correlation_time=0.1"], REPLAY], ids=["white", "correlated", "level-replay"]
+)
 def test_resume_continues_exactly(tmp_path, noise):
     straight = train(tmp_path / "straight", "train.iterations=4", "train.checkpoint_every=2", *noise)
     assert (tmp_path / "straight" / "checkpoints" / "iter_000002.pt").is_file()
@@ -57,6 +62,10 @@ def test_resume_continues_exactly(tmp_path, noise):
     resumed = train(tmp_path / "resumed", "train.iterations=4", f"resume={half}", *noise)
     assert load_checkpoint(resumed)["iteration"] == 4
     assert_same_weights(actor_of(straight), actor_of(resumed))
+    if noise == REPLAY:  # stored falls were replayed, and the figures say so
+        last = (tmp_path / "straight" / "metrics.csv").read_text().splitlines()
+        row = dict(zip(last[0].split(","), last[-1].split(",")))
+        assert float(row["level_replay/stored"]) == 4 and float(row["level_replay/replayed"]) > 0
 
 
 def test_normalized_values_train_log_their_statistics_and_load_with_the_policy(tmp_path):

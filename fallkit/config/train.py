@@ -131,6 +131,26 @@ class PPOConfig(Section):
         return self
 
 
+class LevelReplayConfig(Section):
+    """Prioritised replay of training falls (fallkit.env.samplers.replay; PLR, Jiang et al. 2021)."""
+
+    share: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="share of the restarting training worlds that replay a stored fall (its initial state and end "
+        "pose) chosen by its score, the mean |advantage| of its last play, instead of drawing a fresh one; 0: every "
+        "fall fresh (the paper). Evaluation is unaffected",
+    )
+    size: int = Field(1024, ge=1, description="stored falls; replay starts once the buffer is full")
+    temperature: float = Field(
+        0.1, gt=0, description="a stored fall is replayed with weight (1/rank of its score)^(1/temperature) (PLR's 0.1)"
+    )
+    staleness: float = Field(
+        0.1, ge=0, le=1, description="share of the replay chance given by how long ago a fall was last played (PLR's 0.1)"
+    )
+
+
 class TrainConfig(Section):
     """Budget, networks, the policy's prior, logging and checkpoints of a training run."""
 
@@ -174,6 +194,7 @@ class TrainConfig(Section):
         "on): with train.fade_residual the rest of a fall is the prior's alone, so those steps teach the actor "
         "nothing. Evaluation always runs to env.episode_length. 0: every episode runs to the end",
     )
+    level_replay: LevelReplayConfig = Field(default_factory=LevelReplayConfig)
     noise_correlation_time: float = Field(
         0.0,
         ge=0,

@@ -19,6 +19,7 @@ Keys (TensorDict):
   "reward_terms"   [N, K]  the reward's K summands (RewardSum.columns order: a term per column, the
                            impact one per component; 0 at a reset): not an input
   "done", "terminated", "truncated" [N, 1]; terminated is always False
+  "fall_id"        [N]     training with replay only: the play each step belongs to (`replay_levels`)
 Per-term reward means: `env.pop_reward_terms()` / `env.reward_terms_mean`.
 
 Goal (paper Sec. IV-A): the end pose's root orientation with its heading
@@ -38,7 +39,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from fallkit import registry
-from fallkit.config import EnvConfig, RewardConfig
+from fallkit.config import EnvConfig, LevelReplayConfig, RewardConfig
 from fallkit.env.checks import check_inputs, check_reset_to
 from fallkit.env.observations import (
     actor_layout,
@@ -52,7 +53,9 @@ from fallkit.env.observations import (
 from fallkit.env.randomization import EpisodeRandomization, SensitivityDraw
 from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.env.rewards.tracking import blend
+from fallkit.env.run_state import load_run_state, save_run_state
 from fallkit.env.samplers.end_pose import EndPoseDraw
+from fallkit.env.samplers.replay import LevelReplay
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
 from fallkit.rotations import tilt_quat
@@ -99,6 +102,7 @@ class FallEnv(EnvBase):
         self._make_constants()
         self._make_episode_buffers()
         self.randomization = EpisodeRandomization(env_cfg.randomization, sim, spec.friction, self.device)
+        self.level_replay: LevelReplay | None = None  # training only: replay_levels
         self._make_specs()
 
     # ---- public helpers -------------------------------------------------------------
@@ -158,39 +162,21 @@ class FallEnv(EnvBase):
         truncated: the critic's value, learned from the episodes that run to T, stands in for the rest."""
         self._short = (fraction, min(self.max_steps, math.ceil(self.reward_cfg.blend_time / self.dt - 1e-6)))
 
-    # Not nn.Module's state_dict on purpose: this is the simulation's and episodes' state, not parameters.
-    _BUFFERS = ("step_count", "end_pose_ids", "goal_root_quat", "goal_joint_pos", "last_action", "last_last_action",
-                "_motion", "sensitivity", "episode_steps")  # fmt: skip
+    def replay_levels(self, config: LevelReplayConfig) -> LevelReplay:
+        """Training only: a share of the restarts replay stored falls chosen by score (fallkit.env.samplers.replay);
+        every step then carries its play's "fall_id" [N], for the trainer's `LevelReplay.record`."""
+        nq, nv = self.sim.state.qpos.shape[1], self.sim.state.qvel.shape[1]
+        self.level_replay = LevelReplay(config, self.num_envs, nq, nv, self.device)
+        self._make_specs()  # with "fall_id"
+        return self.level_replay
 
     def run_state(self) -> dict:
-        """Everything needed to continue exactly: physics, episode buffers, disturbances, generators."""
-        state = {name: getattr(self, name).clone() for name in self._BUFFERS}
-        state["sim"] = self.sim.state_dict()
-        state["generators"] = (self._cpu_gen.get_state(), self._gen.get_state())
-        state["randomization"] = self.randomization.state()
-        if self.disturbances is not None:
-            d = self.disturbances
-            state["disturbances"] = (d.active.clone(), d.remaining.clone(), d.wrench.clone())
-        return state
+        """Everything needed to continue exactly (fallkit.env.run_state)."""
+        return save_run_state(self)
 
     def load_run_state(self, state: dict) -> None:
         """Restore what run_state() returned (same robot, number of envs and config)."""
-        if state["step_count"].shape != self.step_count.shape:
-            raise ValueError(
-                f"the saved run has {state['step_count'].shape[0]} envs, this one {self.num_envs} (sim.num_envs)"
-            )
-        for name in self._BUFFERS:
-            if name in ("sensitivity", "episode_steps") and name not in state:
-                continue  # a run saved before these existed: the robot's weights and T, as built
-            getattr(self, name).copy_(state[name])
-        self.sim.load_state_dict(state["sim"])
-        self._cpu_gen.set_state(state["generators"][0])
-        self._gen.set_state(state["generators"][1])
-        if "randomization" in state:
-            self.randomization.load(state["randomization"])
-        if self.disturbances is not None and "disturbances" in state:
-            d = self.disturbances
-            d.active, d.remaining, d.wrench = (t.to(self.device) for t in state["disturbances"])
+        load_run_state(self, state)
 
     @property
     def num_unstable(self) -> int:
@@ -228,6 +214,8 @@ class FallEnv(EnvBase):
             return False
         qpos, qvel = self.initial_states.sample(ids.numel(), self._cpu_gen)
         poses = self.end_pose_draw(qpos, qvel, self._gen)
+        if self.level_replay is not None:
+            qpos, qvel, poses = self.level_replay.restart(ids, qpos, qvel, poses, self._cpu_gen)
         self._reset_worlds(mask, ids, qpos, qvel, poses)
         return True
 
@@ -353,6 +341,7 @@ class FallEnv(EnvBase):
             critic=Unbounded((n, dc), device=dev),
             contact_force=Unbounded((n, len(spec.components)), device=dev),
             reward_terms=Unbounded((n, len(self.rewards.columns)), device=dev),
+            **({"fall_id": Unbounded((n,), dtype=torch.long, device=dev)} if self.level_replay is not None else {}),
             shape=(n,),
             device=dev,
         )
@@ -383,17 +372,11 @@ class FallEnv(EnvBase):
             policy = actor.clone()
             noise = torch.randn((actor.shape[0], k), generator=self._gen, device=self.device)
             policy[:, :k].addcmul_(noise, self._noise_std)
-        return TensorDict(
-            {
-                "policy": policy,
-                "critic": critic,
-                "contact_force": st.peak_contact_force(),
-                "reward_terms": self._reward_terms,
-                "done": truncated.clone(),
-                "terminated": torch.zeros_like(truncated),
-                "truncated": truncated,
-            },
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        keys = dict(
+            policy=policy, critic=critic, contact_force=st.peak_contact_force(), reward_terms=self._reward_terms,
+            done=truncated.clone(), terminated=torch.zeros_like(truncated), truncated=truncated,
+        )  # fmt: skip
+        if self.level_replay is not None:
+            keys["fall_id"] = self.level_replay.fall_id.clone()
+        return TensorDict(keys, batch_size=self.batch_size, device=self.device)
 

@@ -69,6 +69,7 @@ class Trainer:
         ) if tc.ppo.mirror else None
         self.env = make_env(config, self.spec, split="train", seed=seed)
         self.env.shorten_episodes(tc.short_episodes)
+        self.replay = self.env.replay_levels(tc.level_replay) if tc.level_replay.share > 0 else None
         precision = resolve_precision(tc.precision, self.env.device)
         if precision != tc.precision:  # checkpoints record the arithmetic the policy learned with, not "auto"
             config = config.model_copy(update={"train": tc.model_copy(update={"precision": precision})})
@@ -83,8 +84,7 @@ class Trainer:
         heads, weight_columns = critic_heads(config, self.spec, self.env.rewards)
         self.critic = make_critic(
             critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
-        )
-        self.critic.to(self.env.device)
+        ).to(self.env.device)
         self.new_columns, start_rate = None, None  # train.init_from: the loaded networks' new inputs, rate
         if tc.init_from and not config.resume:
             self.new_columns, start_rate = start_from(
@@ -193,6 +193,8 @@ class Trainer:
         self._share_cores()
         torch.set_num_threads(self.update_threads)
         stats = self.ppo.update(batch, generator=self.shuffle)
+        if self.replay is not None:  # the update's advantages score the falls the batch played
+            stats |= self.replay.record(batch["fall_id"], batch[self.ppo.loss.tensor_keys.advantage])
         _update_normalizers(self.actor, self.critic, batch, self.ppo.mirror)
         torch.set_num_threads(self.collect_threads)
         return stats
