@@ -1,6 +1,6 @@
 """What a training run shows and keeps while it runs: the progress bar, TensorBoard and
-metrics.csv, and a stop flag for SIGINT/SIGTERM (finish the iteration, save, stop); and
-`host_reads`, the count that says how often the loop waits for the device."""
+metrics.csv, the finished episodes' impacts, and a stop flag for SIGINT/SIGTERM (finish the
+iteration, save, stop); and `host_reads`, the count that says how often the loop waits for the device."""
 
 from __future__ import annotations
 
@@ -10,6 +10,9 @@ import signal
 import time
 from pathlib import Path
 
+import torch
+from tensordict import TensorDict
+from torchrl.envs import EnvBase
 from tqdm import tqdm
 
 # The aten operations by which the host reads a device value (`.item()`, `bool(tensor)`, a mask's
@@ -154,3 +157,29 @@ def _keep_rows_up_to(path: Path, iteration: int, source: Path) -> None:
     with open(tmp, "w", newline="") as f:
         csv.writer(f).writerows(kept)
     tmp.replace(path)
+
+
+class EpisodeImpacts:
+    """The worst contact force on any component over each finished episode, summed and counted on the
+    device (no host read per step): `pop` gives their mean and count since the last call."""
+
+    def __init__(self, env: EnvBase):
+        self.running = torch.zeros(env.batch_size, device=env.device)
+        self.total = torch.zeros((), device=env.device)
+        self.count = torch.zeros((), device=env.device)
+
+    def add(self, batch: TensorDict) -> None:
+        force = batch["next", "contact_force"].amax(dim=-1)  # [N, T]
+        done = batch["next", "done"].squeeze(-1)
+        for t in range(force.shape[1]):
+            self.running = torch.maximum(self.running, force[:, t])
+            self.total += torch.where(done[:, t], self.running, 0.0).sum()
+            self.count += done[:, t].sum()
+            self.running = torch.where(done[:, t], 0.0, self.running)
+
+    def pop(self) -> dict[str, torch.Tensor]:
+        mean = self.total / self.count  # NaN when no episode finished
+        stats = {"episode/max_impact_force": mean, "episode/count": self.count.clone()}
+        self.total.zero_()
+        self.count.zero_()
+        return stats

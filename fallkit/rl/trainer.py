@@ -2,7 +2,7 @@
 
 `Trainer.run()` is the whole loop, one iteration per pass, read top to bottom:
   collect   num_steps policy steps in every env (FallEnv's step_and_maybe_reset:
-            finished envs restart with a fresh initial state and end pose)
+            finished envs restart: a fresh initial state and end pose, or a stored one, train.level_replay)
   learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr; then
             merge the batch into the running observation statistics (after the
             update, so the update saw the statistics the data was collected with)
@@ -39,7 +39,7 @@ from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_check
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
-from fallkit.rl.monitor import MetricsLog, Progress, StopFlag
+from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
@@ -304,32 +304,6 @@ class Trainer:
         if distributed():
             _check_ranks_in_sync(self.actor)
         return last
-
-
-class EpisodeImpacts:
-    """The worst contact force on any component over each finished episode, summed and counted on the
-    device (no host read per step): `pop` gives their mean and count since the last call."""
-
-    def __init__(self, env: FallEnv):
-        self.running = torch.zeros(env.batch_size, device=env.device)
-        self.total = torch.zeros((), device=env.device)
-        self.count = torch.zeros((), device=env.device)
-
-    def add(self, batch: TensorDict) -> None:
-        force = batch["next", "contact_force"].amax(dim=-1)  # [N, T]
-        done = batch["next", "done"].squeeze(-1)
-        for t in range(force.shape[1]):
-            self.running = torch.maximum(self.running, force[:, t])
-            self.total += torch.where(done[:, t], self.running, 0.0).sum()
-            self.count += done[:, t].sum()
-            self.running = torch.where(done[:, t], 0.0, self.running)
-
-    def pop(self) -> dict[str, torch.Tensor]:
-        mean = self.total / self.count  # NaN when no episode finished
-        stats = {"episode/max_impact_force": mean, "episode/count": self.count.clone()}
-        self.total.zero_()
-        self.count.zero_()
-        return stats
 
 
 def collect(
