@@ -114,3 +114,21 @@ def test_the_env_starts_replayed_falls_exactly_and_tags_every_step(biped):
     assert w.numel() > 0
     assert torch.allclose(env.sim.state.qpos[w].double(), replay.qpos[replay.slot[w]])
     check_env_specs(env)  # "fall_id" is in the specs
+
+
+def test_a_play_can_be_scored_by_one_reward_terms_advantage_and_a_wrong_term_is_one_line(tmp_path):
+    from helpers import TINY, composed_config
+
+    from fallkit.errors import ConfigError
+    from fallkit.rl.trainer import Trainer
+
+    replay = ["train.level_replay.share=0.5", "train.level_replay.size=4", "train.iterations=3"]
+    trainer = Trainer(composed_config(*TINY, *replay, "train.level_replay.score=orientation"), tmp_path / "a")
+    batch = trainer.collect()
+    trainer.learn(batch)
+    orientation = trainer.ppo.term_names.index("orientation")
+    assert trainer.replay_column == orientation
+    assert batch["term_advantages"].shape[-1] == len(trainer.ppo.term_names)
+    assert trainer.replay.sum.abs().sum() > 0  # the column's |advantage| reached the plays
+    with pytest.raises(ConfigError, match="level_replay.score=tilt is not a reward term"):
+        Trainer(composed_config(*TINY, *replay, "train.level_replay.score=tilt"), tmp_path / "b")

@@ -142,6 +142,12 @@ class LevelReplayConfig(Section):
         "pose) chosen by its score, the mean |advantage| of its last play, instead of drawing a fresh one; 0: every "
         "fall fresh (the paper). Evaluation is unaffected",
     )
+    score: str = Field(
+        "advantage",
+        description="what scores a play, as the mean of its absolute value over the play's steps: 'advantage' (the "
+        "actor's, PLR's L1 value loss) or a reward term's own advantage (needs train.ppo.value_per_term), e.g. "
+        "orientation: the falls whose landing side the actor can still change",
+    )
     size: int = Field(1024, ge=1, description="stored falls; replay starts once the buffer is full")
     temperature: float = Field(
         0.1, gt=0, description="a stored fall is replayed with weight (1/rank of its score)^(1/temperature) (PLR's 0.1)"

@@ -341,6 +341,7 @@ class PPO:
         )
         batch.set(keys.advantage, advantages.sum(dim=-1, keepdim=True))
         batch.set(keys.value_target, targets)
+        batch.set("term_advantages", advantages)  # [N, T, K]: what train.level_replay.score may read
         return advantages
 
     @torch.no_grad()

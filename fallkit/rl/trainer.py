@@ -82,6 +82,7 @@ class Trainer:
             obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
         heads, weight_columns = critic_heads(config, self.spec, self.env.rewards)
+        self.replay_column = _replay_column(tc.level_replay.score, heads) if self.replay is not None else None
         self.critic = make_critic(
             critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
         ).to(self.env.device)
@@ -194,7 +195,9 @@ class Trainer:
         torch.set_num_threads(self.update_threads)
         stats = self.ppo.update(batch, generator=self.shuffle)
         if self.replay is not None:  # the update's advantages score the falls the batch played
-            stats |= self.replay.record(batch["fall_id"], batch[self.ppo.loss.tensor_keys.advantage])
+            column = self.replay_column
+            score = batch["advantage"] if column is None else batch["term_advantages"][..., column]
+            stats |= self.replay.record(batch["fall_id"], score)
         _update_normalizers(self.actor, self.critic, batch, self.ppo.mirror)
         torch.set_num_threads(self.collect_threads)
         return stats
@@ -361,6 +364,18 @@ def _init_distributed(config: FallkitConfig) -> int:
     backend = "nccl" if config.sim.device.startswith("cuda") and torch.cuda.is_available() else "gloo"
     dist.init_process_group(backend=backend)
     return dist.get_rank()
+
+
+def _replay_column(score: str, heads: list[str]) -> int | None:
+    """train.level_replay.score: None for the actor's advantage, else the value head whose advantage scores a play."""
+    if score == "advantage":
+        return None
+    if score not in heads:
+        raise ConfigError(
+            f"train.level_replay.score={score} is not a reward term with a value head of its own (heads: "
+            f"{', '.join(heads)}): use 'advantage', or a reward term with train.ppo.value_per_term=true"
+        )
+    return heads.index(score)
 
 
 def _shape_mismatch(here: dict[str, torch.Tensor], there: dict[str, torch.Tensor]) -> str:
