@@ -107,12 +107,17 @@ class Trainer:
         self.stopped: str | None = None  # the signal that stopped the run, if one did
         self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
         if config.resume:
-            ckpt = load_checkpoint(config.resume, map_location=self.env.device)
-            self.load_state_dict(ckpt)
-            self.start = self.iteration
-            self.resumed_from = checkpoint_run_dir(ckpt["path"])
-            if self.main_rank:
-                print(f"resumed from {ckpt['path']} at iteration {self.iteration}; training to {tc.iterations}")
+            self._resume(config.resume)
+
+    def _resume(self, path: str) -> None:
+        """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state."""
+        ckpt = load_checkpoint(path, map_location=self.env.device)
+        self.load_state_dict(ckpt)
+        self.start = self.iteration
+        self.resumed_from = checkpoint_run_dir(ckpt["path"])
+        if self.main_rank:
+            target = self.config.train.iterations
+            print(f"resumed from {ckpt['path']} at iteration {self.iteration}; training to {target}")
 
     def _make_ppo(self, mirror: ObservationMirror | None) -> PPO:
         """PPO over this run's actor and critic, with the learning aids the config switches on."""
