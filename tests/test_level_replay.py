@@ -132,3 +132,5 @@ def test_a_play_can_be_scored_by_one_reward_terms_advantage_and_a_wrong_term_is_
     assert trainer.replay.sum.abs().sum() > 0  # the column's |advantage| reached the plays
     with pytest.raises(ConfigError, match="level_replay.score=tilt is not a reward term"):
         Trainer(composed_config(*TINY, *replay, "train.level_replay.score=tilt"), tmp_path / "b")
+    with pytest.raises(ConfigError, match="level_replay.score=tilt is not a reward term"):  # with the replay off too
+        Trainer(composed_config(*TINY, "train.iterations=3", "train.level_replay.score=tilt"), tmp_path / "c")

@@ -82,7 +82,8 @@ class Trainer:
             obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
         heads, weight_columns = critic_heads(config, self.spec, self.env.rewards)
-        self.replay_column = _replay_column(tc.level_replay.score, heads) if self.replay is not None else None
+        # checked with the replay off too: a misspelt score is an error, not a value waiting to bite later
+        self.replay_column = _replay_column(tc.level_replay.score, heads)
         self.critic = make_critic(
             critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
         ).to(self.env.device)
