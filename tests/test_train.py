@@ -47,10 +47,13 @@ def test_same_seed_same_iterations_bit_for_bit(tmp_path):
 
 
 REPLAY = ["train.level_replay.share=0.5", "train.level_replay.size=4"]
+SELF_IMITATION = ["train.self_imitation.coef=1", "train.self_imitation.size=64", "train.self_imitation.minibatch=8"]
 
 
 @pytest.mark.parametrize(
-    "noise", [[], ["train.noise_correlation_time=0.1"], REPLAY], ids=["white", "correlated", "level-replay"]
+    "noise",
+    [[], ["train.noise_correlation_time=0.1"], REPLAY, SELF_IMITATION],
+    ids=["white", "correlated", "level-replay", "self-imitation"],
 )
 def test_resume_continues_exactly(tmp_path, noise):
     straight = train(tmp_path / "straight", "train.iterations=4", "train.checkpoint_every=2", *noise)
@@ -66,6 +69,10 @@ def test_resume_continues_exactly(tmp_path, noise):
         last = (tmp_path / "straight" / "metrics.csv").read_text().splitlines()
         row = dict(zip(last[0].split(","), last[-1].split(",")))
         assert float(row["level_replay/stored"]) == 4 and float(row["level_replay/replayed"]) > 0
+    if noise == SELF_IMITATION:  # the store filled with finished falls' steps and the actor learned from it
+        last = (tmp_path / "straight" / "metrics.csv").read_text().splitlines()
+        row = dict(zip(last[0].split(","), last[-1].split(",")))
+        assert float(row["self_imitation/stored"]) > 8 and float(row["self_imitation/loss"]) != 0
 
 
 def test_normalized_values_train_log_their_statistics_and_load_with_the_policy(tmp_path):

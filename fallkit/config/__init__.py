@@ -24,13 +24,14 @@ from fallkit.config.reward import BUILTIN_TERMS, RewardConfig
 from fallkit.config.robot import RobotConfig
 from fallkit.config.section import Section
 from fallkit.config.sim import SimConfig
-from fallkit.config.train import LevelReplayConfig, PPOConfig, TrainConfig
+from fallkit.config.train import LevelReplayConfig, PPOConfig, SelfImitationConfig, TrainConfig
 from fallkit.errors import ConfigError
 
 __all__ = [
     "BUILTIN_TERMS", "ConfigError", "DatasetConfig", "DetectorConfig", "DisturbanceConfig", "DisturbanceRange",
     "EnvConfig", "EvalConfig", "FallkitConfig", "InitialStateConfig", "LevelReplayConfig", "Mode", "ObservationNoise",
-    "PlayConfig", "PPOConfig", "PushTestConfig", "RenderConfig", "RewardConfig", "RobotConfig", "SettleConfig",
+    "PlayConfig", "PPOConfig", "PushTestConfig", "RenderConfig", "RewardConfig", "RobotConfig", "SelfImitationConfig",
+    "SettleConfig",
     "SimConfig", "TrainConfig", "defaults", "validate",
 ]  # fmt: skip
 

@@ -157,6 +157,22 @@ class LevelReplayConfig(Section):
     )
 
 
+class SelfImitationConfig(Section):
+    """Self-imitation of the policy's own better-than-expected actions (fallkit.rl.self_imitation; SIL, Oh et al. 2018)."""
+
+    coef: float = Field(
+        0.0,
+        ge=0,
+        description="weight of the self-imitation loss −log π(a|s)·(R − V(s))₊ / σ_A over stored steps whose "
+        "discounted return R beat the critic's value (σ_A: the latest batch's advantage std); 0: off (the paper)",
+    )
+    size: int = Field(32_768, ge=1, description="stored steps (first in, first out; in every checkpoint)")
+    steps: int = Field(4, ge=1, description="self-imitation minibatch steps after each PPO update")
+    minibatch: int = Field(1536, ge=1, description="stored steps per self-imitation step")
+    learning_rate: float = Field(5e-5, gt=0, description="Adam rate of the self-imitation steps (the actor only)")
+    max_weight: float = Field(5.0, gt=0, description="(R − V)₊ / σ_A is clipped here, so one lucky fall cannot dominate")
+
+
 class TrainConfig(Section):
     """Budget, networks, the policy's prior, logging and checkpoints of a training run."""
 
@@ -201,6 +217,7 @@ class TrainConfig(Section):
         "nothing. Evaluation always runs to env.episode_length. 0: every episode runs to the end",
     )
     level_replay: LevelReplayConfig = Field(default_factory=LevelReplayConfig)
+    self_imitation: SelfImitationConfig = Field(default_factory=SelfImitationConfig)
     noise_correlation_time: float = Field(
         0.0,
         ge=0,

@@ -114,3 +114,14 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def shape_mismatch(here: dict[str, torch.Tensor], there: dict[str, torch.Tensor]) -> str:
+    """The first parameter whose presence or shape differs, in words ('' when they all match)."""
+    for key in sorted(here.keys() | there.keys()):
+        a, b = here.get(key), there.get(key)
+        if a is None or b is None:
+            return f"'{key}' exists only {'in the checkpoint' if a is None else 'in this run'}"
+        if a.shape != b.shape:
+            return f"'{key}' is {list(b.shape)} there and {list(a.shape)} here"
+    return ""

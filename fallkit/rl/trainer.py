@@ -35,7 +35,7 @@ from fallkit.env.fall_env import FallEnv
 from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError, TrainingError
 from fallkit.machine import core_share, running_processes
-from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint
+from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint, shape_mismatch
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
@@ -43,6 +43,7 @@ from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
+from fallkit.rl.self_imitation import SelfImitation
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -96,6 +97,9 @@ class Trainer:
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
         self.ppo = self._make_ppo(mirror)
+        self.self_imitation = SelfImitation(
+            tc.self_imitation, self.actor, self.critic, self.env.num_envs, self.env.max_steps, tc.ppo.gamma
+        ) if tc.self_imitation.coef > 0 else None  # fmt: skip
         if start_rate is not None:
             self.ppo.optimizer.start_at(start_rate)
         self.shuffle = torch.Generator().manual_seed(seed)
@@ -204,6 +208,9 @@ class Trainer:
             column = self.replay_column
             score = batch["advantage"] if column is None else batch["term_advantages"][..., column]
             stats |= self.replay.record(batch["fall_id"], score)
+        if self.self_imitation is not None:  # after PPO: the returns are judged by the updated critic
+            self.self_imitation.add(batch)
+            stats |= self.self_imitation.update(self.shuffle)
         _update_normalizers(self.actor, self.critic, batch, self.ppo.mirror)
         torch.set_num_threads(self.collect_threads)
         return stats
@@ -244,6 +251,7 @@ class Trainer:
             "observation": self.td.clone(),  # the next collection starts from it, noise included
             "rng": {"torch": torch.get_rng_state(), "shuffle": self.shuffle.get_state()},
             "noise": self.noise.state_dict() if self.noise is not None else None,
+            "self_imitation": self.self_imitation.state_dict() if self.self_imitation is not None else None,
         }
 
     def load_state_dict(self, ckpt: dict[str, Any]) -> None:
@@ -255,7 +263,7 @@ class Trainer:
                 f"this run is '{self.spec.name}' (model {self.spec.model_hash()})"
             )
         for name, net in (("actor", self.actor), ("critic", self.critic)):
-            differ = _shape_mismatch(net.state_dict(), ckpt[name])
+            differ = shape_mismatch(net.state_dict(), ckpt[name])
             if differ:
                 raise ConfigError(
                     f"resume: the {name} network of {path} differs from this run's: {differ}; "
@@ -271,6 +279,8 @@ class Trainer:
         self.shuffle.set_state(ckpt["rng"]["shuffle"])
         if self.noise is not None and ckpt.get("noise") is not None:  # else: a fresh stationary draw
             self.noise.load_state_dict(ckpt["noise"])
+        if self.self_imitation is not None and ckpt.get("self_imitation") is not None:  # else: an empty store
+            self.self_imitation.load_state_dict(ckpt["self_imitation"])
         self.iteration = int(ckpt["iteration"])
         self.td = ckpt["observation"].to(self.env.device)
 
@@ -382,14 +392,3 @@ def _replay_column(score: str, heads: list[str]) -> int | None:
             f"{', '.join(heads)}): use 'advantage', or a reward term with train.ppo.value_per_term=true"
         )
     return heads.index(score)
-
-
-def _shape_mismatch(here: dict[str, torch.Tensor], there: dict[str, torch.Tensor]) -> str:
-    """The first parameter whose presence or shape differs, in words ('' when they all match)."""
-    for key in sorted(here.keys() | there.keys()):
-        a, b = here.get(key), there.get(key)
-        if a is None or b is None:
-            return f"'{key}' exists only {'in the checkpoint' if a is None else 'in this run'}"
-        if a.shape != b.shape:
-            return f"'{key}' is {list(b.shape)} there and {list(a.shape)} here"
-    return ""
