@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -38,7 +39,7 @@ def batch(rewards: torch.Tensor, done: torch.Tensor) -> TensorDict:
 def test_finished_episodes_store_their_discounted_returns_where_they_beat_the_value():
     v = -1.0
     actor, critic = nets(v)
-    sil = SelfImitation(SelfImitationConfig(coef=1.0, size=32, minibatch=2), actor, critic, 2, 8, GAMMA)
+    sil = SelfImitation(SelfImitationConfig(steps=1, size=32, minibatch=2), actor, critic, 2, 8, GAMMA)
     rewards = torch.tensor([[1.0, -2.0, 1.0, 5.0], [0.5, 0.5, 0.5, 0.5]])
     done = torch.tensor([[False, False, True, False], [False] * 4])
     sil.add(batch(rewards, done))
@@ -59,7 +60,7 @@ def test_finished_episodes_store_their_discounted_returns_where_they_beat_the_va
 
 def test_its_update_raises_the_log_probability_of_the_stored_actions():
     actor, critic = nets(-10.0)  # every return beats it
-    cfg = SelfImitationConfig(coef=1.0, size=64, minibatch=16, steps=20, learning_rate=1e-2)
+    cfg = SelfImitationConfig(steps=20, size=64, minibatch=16, learning_rate=1e-2)
     sil = SelfImitation(cfg, actor, critic, 4, 16, GAMMA)
     sil.add(batch(torch.zeros(4, 16), torch.zeros(4, 16, dtype=torch.bool).index_fill_(1, torch.tensor([15]), True)))
     assert sil.stored == 64
@@ -74,3 +75,21 @@ def test_its_update_raises_the_log_probability_of_the_stored_actions():
     figures = sil.update(torch.Generator().manual_seed(0))
     assert log_prob() > before + 0.1
     assert figures["self_imitation/pulling"] == 1.0 and 0 < figures["self_imitation/weight"] <= cfg.max_weight
+
+
+def test_one_terms_self_imitation_trains_and_a_wrong_term_is_one_line_even_when_off(tmp_path):
+    from helpers import TINY, composed_config
+
+    from fallkit.errors import ConfigError
+    from fallkit.rl.trainer import Trainer
+
+    term = ["train.self_imitation.steps=2", "train.self_imitation.minibatch=2", "train.self_imitation.term=orientation"]
+    trainer = Trainer(composed_config(*TINY, *term), tmp_path / "a")
+    sil = trainer.self_imitation
+    assert sil.head == trainer.ppo.term_names.index("orientation")
+    assert [trainer.env.rewards.columns[c] for c in sil.columns.tolist()] == ["orientation"]
+    for _ in range(4):  # episodes of 10 steps, 4 per iteration: finished falls reach the store
+        stats = trainer.learn(trainer.collect())
+    assert sil.stored > 0 and stats["self_imitation/loss"] != 0
+    with pytest.raises(ConfigError, match="self_imitation.term=tilt is not a reward term"):
+        Trainer(composed_config(*TINY, "train.self_imitation.term=tilt"), tmp_path / "b")

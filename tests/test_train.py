@@ -47,7 +47,7 @@ def test_same_seed_same_iterations_bit_for_bit(tmp_path):
 
 
 REPLAY = ["train.level_replay.share=0.5", "train.level_replay.size=4"]
-SELF_IMITATION = ["train.self_imitation.coef=1", "train.self_imitation.size=64", "train.self_imitation.minibatch=8"]
+SELF_IMITATION = ["train.self_imitation.steps=4", "train.self_imitation.size=64", "train.self_imitation.minibatch=8"]
 
 
 @pytest.mark.parametrize(

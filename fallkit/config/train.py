@@ -160,16 +160,23 @@ class LevelReplayConfig(Section):
 class SelfImitationConfig(Section):
     """Self-imitation of the policy's own better-than-expected actions (fallkit.rl.self_imitation; SIL, Oh et al. 2018)."""
 
-    coef: float = Field(
-        0.0,
+    steps: int = Field(
+        0,
         ge=0,
-        description="weight of the self-imitation loss −log π(a|s)·(R − V(s))₊ / σ_A over stored steps whose "
-        "discounted return R beat the critic's value (σ_A: the latest batch's advantage std); 0: off (the paper)",
+        description="self-imitation minibatch steps after each PPO update, each on the loss −log π(a|s)·(R − V(s))₊/σ_A "
+        "over stored steps whose discounted return R beat the critic's value (σ_A: the latest batch's advantage "
+        "std); 0: off (the paper)",
+    )
+    term: str = Field(
+        "return",
+        description="what R and V are: 'return' (the whole reward and value) or one reward term's (needs "
+        "train.ppo.value_per_term), e.g. orientation: imitate the actions that steered better than expected",
     )
     size: int = Field(32_768, ge=1, description="stored steps (first in, first out; in every checkpoint)")
-    steps: int = Field(4, ge=1, description="self-imitation minibatch steps after each PPO update")
     minibatch: int = Field(1536, ge=1, description="stored steps per self-imitation step")
-    learning_rate: float = Field(5e-5, gt=0, description="Adam rate of the self-imitation steps (the actor only)")
+    learning_rate: float = Field(
+        5e-5, gt=0, description="Adam rate of the self-imitation steps (the actor only; with `steps`, their strength)"
+    )
     max_weight: float = Field(5.0, gt=0, description="(R − V)₊ / σ_A is clipped here, so one lucky fall cannot dominate")
 
 

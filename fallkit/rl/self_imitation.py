@@ -14,12 +14,15 @@ How, in the trainer's loop:
                action, the task reward); when the episode ends its returns R_t = Σ_k γ^(k−t) r_k, the
                tail bootstrapped by V at the last next-state as GAE does (episodes end by time), and
                the steps with R_t > V(s_t) go into a first-in-first-out store.
-  update()     `steps` minibatches from the store: loss = coef · mean(−log π(a|s) · min((R − V(s))₊ / σ_A,
+  update()     `steps` minibatches from the store: loss = mean(−log π(a|s) · min((R − V(s))₊ / σ_A,
                max_weight)), V read now (a step the critic has come to expect stops pulling), σ_A the
                latest PPO batch's advantage std (so the weights have PPO's normalised scale); an Adam of
-               its own on the actor's parameters, gradients clipped to 1.
+               its own on the actor's parameters, gradients clipped to 1. Adam divides out a constant
+               factor of the loss, so `learning_rate` and `steps` set its strength, not a coefficient.
+With `term` (a reward term, e.g. orientation) R and V are that term's return and value head: the actions
+that steered better than expected, whatever they cost in impact (PPO's own update still prices that).
 Only the actor learns here (SIL's value term is left out: the critic's heads learn per reward term in
-PPO, and R is the whole return). Off by default (`coef=0`); measured in docs/training.md.
+PPO). Off by default (`steps=0`); measured in docs/training.md.
 """
 
 from __future__ import annotations
@@ -27,13 +30,48 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-from fallkit.config import SelfImitationConfig
+from fallkit.config import FallkitConfig, SelfImitationConfig
+from fallkit.env.rewards.context import RewardSum
+from fallkit.errors import ConfigError
 from fallkit.rl.models import policy_net, value_net
 
 
+def make_self_imitation(
+    config: FallkitConfig, actor, critic, rewards: RewardSum, heads: list[str], num_envs: int, max_steps: int
+) -> SelfImitation | None:
+    """The run's self-imitation (None when train.self_imitation.steps is 0), its `term` checked either way:
+    the reward columns and the value head of a term (`heads`: the critic's, fallkit.rl.ppo.critic_heads)."""
+    cfg, ppo = config.train.self_imitation, config.train.ppo
+    columns = head = None
+    if cfg.term != "return":
+        if cfg.term not in heads or ppo.value_per_component:
+            raise ConfigError(
+                f"train.self_imitation.term={cfg.term} is not a reward term with a value head of its own (heads: "
+                f"{', '.join(heads)}): use 'return', or a reward term with train.ppo.value_per_term=true "
+                "(and value_per_component=false)"
+            )
+        columns = (rewards.column_term == rewards.names.index(cfg.term)).nonzero().view(-1)
+        head = heads.index(cfg.term)
+    if cfg.steps == 0:
+        return None
+    gamma = ppo.term_gamma.get(cfg.term, ppo.gamma)
+    return SelfImitation(cfg, actor, critic, num_envs, max_steps, gamma, columns, head)
+
+
 class SelfImitation:
-    def __init__(self, cfg: SelfImitationConfig, actor, critic, num_envs: int, max_steps: int, gamma: float):
+    def __init__(
+        self,
+        cfg: SelfImitationConfig,
+        actor,
+        critic,
+        num_envs: int,
+        max_steps: int,
+        gamma: float,
+        columns: torch.Tensor | None = None,
+        head: int | None = None,
+    ):
         self.cfg, self.gamma = cfg, gamma
+        self.columns, self.head = columns, head  # one term's reward columns and value head; None: the whole return
         self.net, self.value = policy_net(actor), value_net(critic)
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=cfg.learning_rate)
         self.num_envs, self.max_steps = num_envs, max_steps
@@ -48,7 +86,8 @@ class SelfImitation:
 
     @torch.no_grad()
     def add(self, batch: TensorDict) -> None:
-        """The [N, T] batch's steps into the running episodes; finished episodes' better-than-expected steps into the store."""
+        """The [N, T] batch's steps into the running episodes; the finished episodes' better-than-expected
+        steps into the store."""
         if not self.episode:
             self._allocate(batch)
         self.length = self.length.to(batch.device)
@@ -58,7 +97,7 @@ class SelfImitation:
         done = batch["next", "done"].view(self.num_envs, -1)
         worlds = torch.arange(self.num_envs, device=batch.device)
         for t in range(done.shape[1]):
-            # an episode longer than the buffer (none in a FallEnv, whose episodes end by max_steps) keeps its last steps
+            # an episode longer than the buffer (none in a FallEnv: its episodes end by max_steps) keeps its last
             slot = self.length.clamp(max=self.max_steps - 1)
             for key, value in self._step(batch, t).items():
                 self.episode[key][worlds, slot] = value
@@ -69,12 +108,13 @@ class SelfImitation:
                 self.length[ended] = 0
 
     def _step(self, batch: TensorDict, t: int) -> dict[str, torch.Tensor]:
-        return {
-            "policy": batch["policy"][:, t],
-            "critic": batch["critic"][:, t],
-            "action": batch["action"][:, t],
-            "reward": batch["next", "reward"][:, t, 0],
-        }
+        if self.columns is None:
+            reward = batch["next", "reward"][:, t, 0]
+        else:
+            self.columns = self.columns.to(batch.device)
+            reward = batch["next", "reward_terms"][:, t].index_select(-1, self.columns).sum(-1)
+        step = {key: batch[key][:, t] for key in ("policy", "critic", "action")}
+        return step | {"reward": reward}
 
     def _allocate(self, batch: TensorDict) -> None:
         shape = (self.num_envs, self.max_steps)
@@ -100,8 +140,9 @@ class SelfImitation:
         self._push(rows)
 
     def _value(self, critic_obs: torch.Tensor) -> torch.Tensor:
-        """V(s), the sum of the critic's heads."""
-        return self.value(critic_obs).sum(-1)
+        """V(s): the sum of the critic's heads, or the term's head."""
+        value = self.value(critic_obs)
+        return value.sum(-1) if self.head is None else value[..., self.head]
 
     def _push(self, rows: dict[str, torch.Tensor]) -> None:
         n = rows["return"].shape[0]
@@ -121,7 +162,8 @@ class SelfImitation:
     def update(self, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
         """`steps` minibatches of the self-imitation loss on the actor; the iteration's figures."""
         device = self.advantage_std.device
-        figures = {"self_imitation/stored": torch.tensor(float(self.stored), device=device), "self_imitation/added": self.added}
+        stored = torch.tensor(float(self.stored), device=device)
+        figures = {"self_imitation/stored": stored, "self_imitation/added": self.added}
         cfg, zero = self.cfg, torch.zeros((), device=device)
         loss_sum, weight_sum, pulling = zero, zero, zero  # the same columns from the first iteration on (metrics.csv)
         for _ in range(cfg.steps if self.stored >= cfg.minibatch else 0):
@@ -131,7 +173,7 @@ class SelfImitation:
                 weight = (gap.clamp(min=0) / self.advantage_std).clamp(max=cfg.max_weight)
             loc, scale = self.net(self.store["policy"][rows])
             log_prob = torch.distributions.Normal(loc, scale).log_prob(self.store["action"][rows]).sum(-1)
-            loss = cfg.coef * -(log_prob * weight).mean()
+            loss = -(log_prob * weight).mean()
             self.optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(self.net.parameters(), 1.0)

@@ -43,7 +43,7 @@ from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
-from fallkit.rl.self_imitation import SelfImitation
+from fallkit.rl.self_imitation import make_self_imitation
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.robots import robot_spec
 
@@ -97,9 +97,9 @@ class Trainer:
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
         self.ppo = self._make_ppo(mirror)
-        self.self_imitation = SelfImitation(
-            tc.self_imitation, self.actor, self.critic, self.env.num_envs, self.env.max_steps, tc.ppo.gamma
-        ) if tc.self_imitation.coef > 0 else None  # fmt: skip
+        self.self_imitation = make_self_imitation(
+            config, self.actor, self.critic, self.env.rewards, heads, self.env.num_envs, self.env.max_steps
+        )
         if start_rate is not None:
             self.ppo.optimizer.start_at(start_rate)
         self.shuffle = torch.Generator().manual_seed(seed)
