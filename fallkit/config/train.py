@@ -172,7 +172,12 @@ class SelfImitationConfig(Section):
         description="what R and V are: 'return' (the whole reward and value) or one reward term's (needs "
         "train.ppo.value_per_term), e.g. orientation: imitate the actions that steered better than expected",
     )
-    size: int = Field(32_768, ge=1, description="stored steps (first in, first out; in every checkpoint)")
+    size: int = Field(
+        32_768,
+        ge=1,
+        description="stored steps (first in, first out); the store and the running episodes are in every checkpoint: "
+        "2.2 kB per step for biped20, 160 MB per checkpoint with 256 envs",
+    )
     minibatch: int = Field(1536, ge=1, description="stored steps per self-imitation step")
     learning_rate: float = Field(
         5e-5, gt=0, description="Adam rate of the self-imitation steps (the actor only; with `steps`, their strength)"

@@ -3,7 +3,7 @@
 `Trainer.run()` is the whole loop, one iteration per pass, read top to bottom:
   collect   num_steps policy steps in every env (FallEnv's step_and_maybe_reset:
             finished envs restart: a fresh initial state and end pose, or a stored one, train.level_replay)
-  learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr; then
+  learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr (+ train.self_imitation); then
             merge the batch into the running observation statistics (after the
             update, so the update saw the statistics the data was collected with)
   log       progress bar, TensorBoard scalars, metrics.csv
