@@ -93,3 +93,12 @@ def test_one_terms_self_imitation_trains_and_a_wrong_term_is_one_line_even_when_
     assert sil.stored > 0 and stats["self_imitation/loss"] != 0
     with pytest.raises(ConfigError, match="self_imitation.term=tilt is not a reward term"):
         Trainer(composed_config(*TINY, "train.self_imitation.term=tilt"), tmp_path / "b")
+
+
+def test_min_weight_keeps_only_the_steps_that_beat_the_value_by_that_many_advantage_stds():
+    actor, critic = nets(-1.0)
+    sil = SelfImitation(SelfImitationConfig(steps=1, min_weight=1.0), actor, critic, 1, 8, GAMMA)
+    b = batch(torch.tensor([[1.0, -2.0, 1.0]]), torch.tensor([[False, False, True]]))
+    b["advantage"] = torch.tensor([[[-0.5], [0.5], [0.0]]])  # σ_A = 0.5: R must beat V = −1 by more than 0.5
+    sil.add(b)
+    assert torch.allclose(sil.store["return"][: sil.stored], torch.tensor([1.0 + GAMMA * -1.0]))  # R_0 = −0.72 is not enough

@@ -183,6 +183,12 @@ class SelfImitationConfig(Section):
         5e-5, gt=0, description="Adam rate of the self-imitation steps (the actor only; with `steps`, their strength)"
     )
     max_weight: float = Field(5.0, gt=0, description="(R − V)₊ / σ_A is clipped here, so one lucky fall cannot dominate")
+    min_weight: float = Field(
+        0.0,
+        ge=0,
+        description="a step enters the store only when (R − V) / σ_A exceeds this: with 0 about half of a dense "
+        "reward's steps do; 2 keeps the few that did much better than expected, as a sparse reward would",
+    )
 
 
 class TrainConfig(Section):

@@ -134,7 +134,8 @@ class SelfImitation:
         discounts = torch.where(power >= 0, self.gamma**power.clamp(min=0), torch.zeros_like(power))
         tail = self.gamma ** (length.unsqueeze(-1) - steps).clamp(min=0).to(reward.dtype)
         returns = reward @ discounts.T + tail * self._value(last_next_critic).unsqueeze(-1)
-        keep = valid & (returns > self._value(self.episode["critic"][worlds]))
+        margin = self.cfg.min_weight * self.advantage_std  # 0: every step that beat V
+        keep = valid & (returns - self._value(self.episode["critic"][worlds]) > margin)
         rows = {key: self.episode[key][worlds][keep] for key in ("policy", "critic", "action")}
         rows["return"] = returns[keep]
         self._push(rows)
