@@ -101,4 +101,5 @@ def test_min_weight_keeps_only_the_steps_that_beat_the_value_by_that_many_advant
     b = batch(torch.tensor([[1.0, -2.0, 1.0]]), torch.tensor([[False, False, True]]))
     b["advantage"] = torch.tensor([[[-0.5], [0.5], [0.0]]])  # σ_A = 0.5: R must beat V = −1 by more than 0.5
     sil.add(b)
-    assert torch.allclose(sil.store["return"][: sil.stored], torch.tensor([1.0 + GAMMA * -1.0]))  # R_0 = −0.72 is not enough
+    # R_2 = 0.1 is kept; R_0 = −0.72 beat V, but not by enough
+    assert torch.allclose(sil.store["return"][: sil.stored], torch.tensor([1.0 + GAMMA * -1.0]))
