@@ -76,7 +76,8 @@ def measure(args, envs: int) -> dict:
     prior = joint_prior(config, spec)
     actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, precision=precision).to(device)
     heads, weight_columns = critic_heads(config, spec, env.rewards)  # as the trainer builds its critic
-    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns)
+    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns,
+                         tc.critic_layer_norm)
     critic = critic.to(device)
     ppo = PPO(actor, critic, tc.ppo, rewards=env.rewards)
     td = env.reset()
@@ -131,7 +132,8 @@ def measure(args, envs: int) -> dict:
         batch_size=shape, device=device,
     )  # fmt: skip
     actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
-    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns)
+    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns,
+                          tc.critic_layer_norm)
     critic2 = critic2.to(device)
     ppo2 = PPO(actor2, critic2, tc.ppo, rewards=env.rewards)
     torch.set_num_threads(update_threads)

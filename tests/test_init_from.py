@@ -79,8 +79,9 @@ def test_a_run_started_from_a_policy_acts_as_it_and_learns_its_new_inputs(tmp_pa
     [
         (["train.prior_power=1"], "train.prior_power=8.0"),
         (["train.actor_hidden=[32,32]"], "network sizes"),
+        (["train.critic_layer_norm=true"], "train.critic_layer_norm"),
     ],
-    ids=["another prior", "other sizes"],
+    ids=["another prior", "other sizes", "a critic with LayerNorm"],
 )
 def test_what_would_change_the_loaded_weights_meaning_is_one_line(tmp_path, trained, overrides, says):
     with pytest.raises(ConfigError, match="train.init_from") as err:

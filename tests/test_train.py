@@ -87,6 +87,29 @@ def test_normalized_values_train_log_their_statistics_and_load_with_the_policy(t
     assert torch.equal(loaded.critic.target.mean, critic["module.target.mean"])
 
 
+def test_a_critic_with_layer_norm_trains_resumes_and_loads_with_the_policy(tmp_path):
+    """train.critic_layer_norm: each hidden layer of the critic is Linear, LayerNorm, ELU; the actor is untouched;
+    the checkpoint's critic loads with the policy (eval.poses=auto reads it) and predicts what it did in training."""
+    from fallkit.rl.models import value_net
+    from fallkit.rl.policy import load_policy
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config("train.iterations=2", "train.critic_layer_norm=true"), tmp_path / "run")
+    layers = value_net(trainer.critic).value
+    hidden = trainer.config.train.critic_hidden
+    assert [type(m).__name__ for m in layers] == ["Linear", "LayerNorm", "ELU"] * len(hidden) + ["Linear"]
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in trainer.actor.modules())
+    last = trainer.run()
+    loaded = load_policy(last).critic
+    net = value_net(trainer.critic)
+    net.precision = "float32"  # as loaded policies compute
+    obs = torch.randn(3, net.norm.mean.shape[0])
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(obs), net(obs))
+    resumed = train(tmp_path / "resumed", "train.iterations=3", "train.critic_layer_norm=true", f"resume={last}")
+    assert load_checkpoint(resumed)["iteration"] == 3
+
+
 def test_resume_from_corrupt_checkpoint_is_a_clear_error(tmp_path):
     from fallkit.rl.checkpoint import CheckpointError
 

@@ -199,6 +199,11 @@ class TrainConfig(Section):
     max_minutes: float | None = Field(None, gt=0, description="wall-clock budget; the run checkpoints and stops")
     actor_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
     critic_hidden: list[int] = Field(default_factory=lambda: [512, 512, 512])
+    critic_layer_norm: bool = Field(
+        False,
+        description="LayerNorm after each hidden layer of the critic (Linear, LayerNorm, ELU), as BRO and SimBa "
+        "use to keep a critic fitting moving targets; docs/training.md",
+    )
     init_noise_std: float = Field(1.0, gt=0, description="initial policy std, in action units")
     prior: Literal["none", "hold", "seek"] = Field(
         "seek",

@@ -119,7 +119,7 @@ def _load_net(net: nn.Module, state: dict[str, torch.Tensor], index: torch.Tenso
     keys = [k for k in own if ".prior." not in k and not k.endswith("weight_columns")]  # this run's layout, not theirs
     for key in keys:
         if key not in state:
-            raise ConfigError(f"{say}: its {name} network has no '{key}' (another train.ppo.normalize_value?)")
+            raise ConfigError(f"{say}: its {name} network has no '{key}' (another train.ppo.normalize_value or train.critic_layer_norm?)")
         theirs = state[key]
         shape = (own[key].shape[0], index.numel()) if key == first else (
             (index.numel(),) if key in inputs else own[key].shape)  # fmt: skip

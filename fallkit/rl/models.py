@@ -85,10 +85,11 @@ def run_mlp(layers: nn.Sequential, x: torch.Tensor, precision: Precision) -> tor
         return layers(x).float()
 
 
-def mlp(in_dim: int, hidden: list[int], out_dim: int) -> nn.Sequential:
+def mlp(in_dim: int, hidden: list[int], out_dim: int, layer_norm: bool = False) -> nn.Sequential:
+    """ELU MLP; with `layer_norm` each hidden layer is Linear, LayerNorm, ELU (train.critic_layer_norm)."""
     layers: list[nn.Module] = []
     for h in hidden:
-        layers += [nn.Linear(in_dim, h), nn.ELU()]
+        layers += [nn.Linear(in_dim, h), *([nn.LayerNorm(h)] if layer_norm else []), nn.ELU()]
         in_dim = h
     layers.append(nn.Linear(in_dim, out_dim))
     return nn.Sequential(*layers)
@@ -216,10 +217,11 @@ class ValueNet(nn.Module):
         precision: Precision = "float32",
         heads: int = 1,
         weight_columns: list[int] | None = None,
+        layer_norm: bool = False,
     ):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
-        self.value = mlp(obs_dim, hidden, heads)
+        self.value = mlp(obs_dim, hidden, heads, layer_norm)
         self.precision = precision
         self.target = RunningNorm(heads) if normalize_target else None
         scaled = weight_columns is not None and any(c >= 0 for c in weight_columns)
@@ -297,9 +299,10 @@ def make_critic(
     precision: Precision = "float32",
     heads: int = 1,
     weight_columns: list[int] | None = None,
+    layer_norm: bool = False,
 ) -> ValueOperator:
     """TensorDict keys: "critic" -> "state_value" [..., heads]."""
-    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads, weight_columns)
+    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads, weight_columns, layer_norm)
     return ValueOperator(net, in_keys=["critic"], out_keys=["state_value"])
 
 

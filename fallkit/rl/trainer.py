@@ -86,7 +86,7 @@ class Trainer:
         # checked with the replay off too: a misspelt score is an error, not a value waiting to bite later
         self.replay_column = _replay_column(tc.level_replay.score, heads)
         self.critic = make_critic(
-            critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns
+            critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns, tc.critic_layer_norm
         ).to(self.env.device)
         self.new_columns, start_rate = None, None  # train.init_from: the loaded networks' new inputs, rate
         if tc.init_from and not config.resume:
