@@ -69,8 +69,8 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedP
 def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> ValueNet:
     """The checkpoint's value network (a ValueOperator's state: "module.<ValueNet key>")."""
     weights = {k.removeprefix("module."): v for k, v in ckpt["critic"].items()}
-    per_layer = 3 if config.train.critic_layer_norm else 2  # Linear, (LayerNorm,) ELU
-    heads = weights[f"value.{per_layer * len(config.train.critic_hidden)}.bias"].shape[0]  # > 1: a value per reward term
+    output = max(int(k.split(".")[1]) for k in weights if k.startswith("value."))  # the last Linear, with or without LayerNorms
+    heads = weights[f"value.{output}.bias"].shape[0]  # > 1: a value per reward term
     columns = weights["weight_columns"].tolist() if "weight_columns" in weights else None  # w²-scaled impact heads
     net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads,
                    weight_columns=columns, layer_norm=config.train.critic_layer_norm)  # fmt: skip
