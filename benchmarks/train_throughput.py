@@ -32,9 +32,9 @@ from fallkit.app import register_configs
 from fallkit.config import validate
 from fallkit.env.build import make_env
 from fallkit.env.samplers.initial_state import InitialStateSampler
-from fallkit.rl.models import joint_prior, make_actor, make_critic, resolve_precision
-from fallkit.rl.ppo import PPO, critic_heads
-from fallkit.rl.trainer import collect
+from fallkit.rl.models import joint_prior, make_actor, resolve_precision
+from fallkit.rl.ppo import PPO
+from fallkit.rl.trainer import collect, critic_for
 from fallkit.robots import robot_spec
 from fallkit.sim import make_sim, sim_options
 
@@ -75,10 +75,7 @@ def measure(args, envs: int) -> dict:
     act_dim = env.action_spec.shape[-1]
     prior = joint_prior(config, spec)
     actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, precision=precision).to(device)
-    heads, weight_columns = critic_heads(config, spec, env.rewards)  # as the trainer builds its critic
-    critic = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns,
-                         tc.critic_layer_norm)
-    critic = critic.to(device)
+    critic = critic_for(config, spec, env.rewards, critic_dim, precision)[0].to(device)  # as the trainer builds it
     ppo = PPO(actor, critic, tc.ppo, rewards=env.rewards)
     td = env.reset()
 
@@ -132,9 +129,7 @@ def measure(args, envs: int) -> dict:
         batch_size=shape, device=device,
     )  # fmt: skip
     actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
-    critic2 = make_critic(critic_dim, tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns,
-                          tc.critic_layer_norm)
-    critic2 = critic2.to(device)
+    critic2 = critic_for(config, spec, env.rewards, critic_dim, precision)[0].to(device)
     ppo2 = PPO(actor2, critic2, tc.ppo, rewards=env.rewards)
     torch.set_num_threads(update_threads)
     ppo2.update(fake.clone())

@@ -45,7 +45,7 @@ from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.self_imitation import make_self_imitation
 from fallkit.rl.shaping import OrientationPotential
-from fallkit.robots import robot_spec
+from fallkit.robots import RobotSpec, robot_spec
 
 log = logging.getLogger(__name__)
 
@@ -82,12 +82,10 @@ class Trainer:
         self.actor = make_actor(
             obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
-        heads, weight_columns = critic_heads(config, self.spec, self.env.rewards)
+        self.critic, heads = critic_for(config, self.spec, self.env.rewards, critic_dim, tc.precision)
+        self.critic = self.critic.to(self.env.device)
         # checked with the replay off too: a misspelt score is an error, not a value waiting to bite later
         self.replay_column = _replay_column(tc.level_replay.score, heads)
-        self.critic = make_critic(
-            critic_dim, tc.critic_hidden, tc.ppo.normalize_value, tc.precision, len(heads), weight_columns, tc.critic_layer_norm
-        ).to(self.env.device)
         self.new_columns, start_rate = None, None  # train.init_from: the loaded networks' new inputs, rate
         if tc.init_from and not config.resume:
             self.new_columns, start_rate = start_from(
@@ -323,6 +321,14 @@ class Trainer:
         if distributed():
             _check_ranks_in_sync(self.actor)
         return last
+
+
+def critic_for(config: FallkitConfig, spec: RobotSpec, rewards, obs_dim: int, precision: str) -> tuple[torch.nn.Module, list[str]]:
+    """The critic a run builds from its config, and its heads' names: its layout read off the config in one place."""
+    tc = config.train
+    heads, weight_columns = critic_heads(config, spec, rewards)
+    args = (tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns, tc.critic_layer_norm)
+    return make_critic(obs_dim, *args), heads
 
 
 def collect(
