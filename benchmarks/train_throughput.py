@@ -32,6 +32,7 @@ from fallkit.app import register_configs
 from fallkit.config import validate
 from fallkit.env.build import make_env
 from fallkit.env.samplers.initial_state import InitialStateSampler
+from fallkit.machine import subnormals_flushed
 from fallkit.rl.models import joint_prior, make_actor, resolve_precision
 from fallkit.rl.ppo import PPO
 from fallkit.rl.trainer import collect, critic_for
@@ -86,7 +87,8 @@ def measure(args, envs: int) -> dict:
         sync()
         t1 = time.perf_counter()
         torch.set_num_threads(update_threads)
-        ppo.update(batch)
+        with subnormals_flushed():
+            ppo.update(batch)
         actor.module[0].module.norm.update(batch["policy"])
         critic.module.norm.update(batch["critic"])
         torch.set_num_threads(1)
@@ -132,13 +134,14 @@ def measure(args, envs: int) -> dict:
     critic2 = critic_for(config, spec, env.rewards, critic_dim, precision)[0].to(device)
     ppo2 = PPO(actor2, critic2, tc.ppo, rewards=env.rewards)
     torch.set_num_threads(update_threads)
-    ppo2.update(fake.clone())
-    sync()
-    t = time.perf_counter()
-    for _ in range(args.iterations):
+    with subnormals_flushed():  # as the trainer's update
         ppo2.update(fake.clone())
-    sync()
-    t_update = (time.perf_counter() - t) / args.iterations
+        sync()
+        t = time.perf_counter()
+        for _ in range(args.iterations):
+            ppo2.update(fake.clone())
+        sync()
+        t_update = (time.perf_counter() - t) / args.iterations
     torch.set_num_threads(1)
 
     steps = envs * tc.num_steps

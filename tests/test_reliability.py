@@ -224,3 +224,34 @@ def test_fallkit_processes_share_the_cores(tmp_path, monkeypatch):
             other.wait()
         assert machine.running_processes() == 1 and not entry.exists()
     assert machine.running_processes() == 0
+
+
+_SUBNORMALS = """
+import logging, sys, torch
+from fallkit.machine import subnormals_flushed
+logging.basicConfig(level=logging.WARNING)
+torch.set_num_threads(2)
+if sys.argv[1] == "pool-first":
+    torch.full((1 << 16,), 1.0).mul_(2.0)  # torch's threads started outside the block
+tiny = lambda n: int(torch.ones(n, dtype=torch.int32).view(torch.float32).mul_(1.0).count_nonzero())  # subnormals kept
+with subnormals_flushed():
+    inside = tiny(1 << 16)
+print(inside, tiny(8))  # 8 elements: the calling thread alone, after the block
+"""
+
+
+@pytest.mark.parametrize("start", ["pool-inside", "pool-first"])
+def test_the_update_flushes_subnormals_in_every_torch_thread_or_says_it_cannot(start):
+    """The trainer's update runs in subnormals_flushed (a trained critic's ELUs make subnormals, which x86 computes
+    an order of magnitude slower). Real threads, so a fresh interpreter: the mode is per thread, inherited at start."""
+    if not torch.set_flush_denormal(True):
+        pytest.skip("this CPU has no flush-to-zero mode")
+    torch.set_flush_denormal(False)
+    out = subprocess.run([sys.executable, "-c", _SUBNORMALS, start], capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+    inside, after = map(int, out.stdout.split())
+    assert after == 8  # the calling thread computes subnormals again after the block
+    if start == "pool-inside":
+        assert inside == 0 and "do not flush subnormal floats" not in out.stderr
+    else:  # the pool's thread keeps its half; said once, in one line
+        assert inside > 0 and out.stderr.count("do not flush subnormal floats") == 1

@@ -34,7 +34,7 @@ from fallkit.env.build import make_env
 from fallkit.env.fall_env import FallEnv
 from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError, TrainingError
-from fallkit.machine import core_share, running_processes
+from fallkit.machine import core_share, running_processes, subnormals_flushed
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint, shape_mismatch
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.init_from import fresh_statistics, start_from
@@ -201,7 +201,8 @@ class Trainer:
         """The PPO update on this process's share of the cores, then the batch into the running observation statistics."""
         self._share_cores()
         torch.set_num_threads(self.update_threads)
-        stats = self.ppo.update(batch, generator=self.shuffle)
+        with subnormals_flushed():  # else the update slows as the critic saturates (fallkit.machine)
+            stats = self.ppo.update(batch, generator=self.shuffle)
         if self.replay is not None:  # the update's advantages score the falls the batch played
             column = self.replay_column
             score = batch["advantage"] if column is None else batch["term_advantages"][..., column]
@@ -325,8 +326,7 @@ class Trainer:
 
 def critic_for(config: FallkitConfig, spec: RobotSpec, rewards, obs_dim: int, precision: str) -> tuple[torch.nn.Module, list[str]]:
     """The critic a run builds from its config, and its heads' names: its layout read off the config in one place."""
-    tc = config.train
-    heads, weight_columns = critic_heads(config, spec, rewards)
+    tc, (heads, weight_columns) = config.train, critic_heads(config, spec, rewards)
     args = (tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns, tc.critic_layer_norm)
     return make_critic(obs_dim, *args), heads
 
