@@ -233,7 +233,8 @@ logging.basicConfig(level=logging.WARNING)
 torch.set_num_threads(2)
 if sys.argv[1] == "pool-first":
     torch.full((1 << 16,), 1.0).mul_(2.0)  # torch's threads started outside the block
-tiny = lambda n: int(torch.ones(n, dtype=torch.int32).view(torch.float32).mul_(1.0).count_nonzero())  # subnormals kept
+# the smallest subnormal float32 from its bits, times 1, read back as bits: non-zero where a thread did not flush
+tiny = lambda n: int(torch.ones(n, dtype=torch.int32).view(torch.float32).mul_(1.0).view(torch.int32).count_nonzero())
 with subnormals_flushed():
     inside = tiny(1 << 16)
 print(inside, tiny(8))  # 8 elements: the calling thread alone, after the block
