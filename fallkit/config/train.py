@@ -112,6 +112,17 @@ class PPOConfig(Section):
     )
 
     @model_validator(mode="after")
+    def _rate_range(self) -> PPOConfig:
+        # the KL rule clamps only the rate it has just changed, so a start outside the range or an
+        # empty range would run at a rate the user never asked for
+        if self.desired_kl is not None and not self.lr_min <= self.learning_rate <= self.lr_max:
+            raise ValueError(
+                f"train.ppo.learning_rate={self.learning_rate:g} must lie in [lr_min, lr_max] = "
+                f"[{self.lr_min:g}, {self.lr_max:g}], the range of the KL-adaptive rate: change one of the three"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _per_component_needs_per_term(self) -> PPOConfig:
         if self.value_per_component and not self.value_per_term:
             raise ValueError("train.ppo.value_per_component=true needs train.ppo.value_per_term=true (a value per term)")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import collections
 import csv
+import math
 import signal
 import time
 from pathlib import Path
@@ -58,6 +59,11 @@ class StopFlag:
             signal.signal(sig, handler)
 
 
+def _whole(value: float) -> str:
+    """A figure for the bar; "-" while there is none (no episode has ended yet in the first iterations)."""
+    return f"{value:.0f}" if math.isfinite(value) else "-"
+
+
 class Progress:
     """The training bar: iterations, speed, reward, impact and learning rate; time left under a budget."""
 
@@ -84,7 +90,7 @@ class Progress:
         self.bar.set_postfix(
             steps_s=f"{stats['env_steps_per_s']:.0f}",
             reward=f"{stats['reward']:.3f}",
-            impact_N=f"{stats.get('episode/max_impact_force', float('nan')):.0f}",
+            impact_N=_whole(stats.get("episode/max_impact_force", float("nan"))),
             lr=f"{stats['learning_rate']:.1e}",
             **left,
             refresh=False,
