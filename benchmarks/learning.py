@@ -41,14 +41,16 @@ from fallkit.eval.rollout import SEEK
 def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
     """One `python -m fallkit` training run (ending in its evaluation); its eval.json and log sizes."""
     backend = ["sim=warp", f"sim.num_envs={args.envs or 4096}"] if args.backend == "warp" else []
-    if args.backend == "mujoco" and args.envs:
+    if args.backend == "mujoco" and args.envs is not None:
         backend.append(f"sim.num_envs={args.envs}")
     cmd = [
         sys.executable, "-m", "fallkit", "robot=biped20", "train=quick", f"train.max_minutes={args.minutes}",
         f"seed={seed}", f"eval.trials={args.trials}", f"hydra.run.dir={run_dir}", *backend, *args.overrides,
     ]  # fmt: skip
     started = time.monotonic()
-    subprocess.run(cmd, check=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    done = subprocess.run(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    if done.returncode != 0:  # its own error is printed above; no traceback of ours on top of it
+        sys.exit(f"learning.py: the training of seed {seed} failed (exit {done.returncode}); its run directory: {run_dir}")
     wall = time.monotonic() - started
     rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
     resolved = yaml.safe_load((run_dir / "resolved_config.yaml").read_text())
@@ -82,11 +84,15 @@ def main() -> None:
     p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
     p.add_argument("--seeds", type=int, default=1, help="how many seeds, one training each")
     p.add_argument("--first-seed", type=int, default=0, help="seeds first … first + n − 1 (a second seed of a row)")
-    p.add_argument("--envs", type=int, default=0, help="sim.num_envs (default: train=quick's 256; warp 4096)")
+    p.add_argument("--envs", type=int, default=None, help="sim.num_envs (default: train=quick's 256; warp 4096)")
     p.add_argument("--trials", type=int, default=256, help="evaluation falls per strategy")
     p.add_argument("--out", default="runs/learning", help="run directories go here")
     p.add_argument("overrides", nargs="*", help="Hydra overrides for the training, after --")
     args = p.parse_args()
+    for name in ("minutes", "seeds", "trials", "envs"):
+        value = getattr(args, name)
+        if value is not None and value <= 0:
+            p.error(f"--{name} must be positive, got {value:g}")
 
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
     seeds = range(args.first_seed, args.first_seed + args.seeds)

@@ -49,7 +49,9 @@ SETTINGS = {"default": [], "head_4x": ["robot.sensitivity.head=4.0"], "battery_5
 
 
 def fallkit(*overrides: str) -> None:
-    subprocess.run([sys.executable, "-m", "fallkit", *overrides], check=True)
+    done = subprocess.run([sys.executable, "-m", "fallkit", *overrides])
+    if done.returncode != 0:  # its own one-line error is printed above; no traceback of ours on top of it
+        sys.exit(f"sensitivity_inputs.py: `python -m fallkit {' '.join(overrides)}` failed (exit {done.returncode})")
 
 
 def summary(eval_json: Path) -> dict:
@@ -140,12 +142,16 @@ def main() -> None:
     ap.add_argument("overrides", nargs=argparse.REMAINDER,
                     help="-- then training overrides (e.g. train.ppo.normalize_value=true)")
     args = ap.parse_args()
+    for name in ("minutes", "trials"):
+        value = getattr(args, name)
+        if value is not None and value <= 0:
+            ap.error(f"--{name} must be positive, got {value:g}")
     extra = [o for o in args.overrides if o != "--"]
     out = Path(args.out) / time.strftime("%Y-%m-%d_%H-%M-%S")
     start = time.perf_counter()
     run = Path(args.checkpoint) if args.checkpoint else out / "train"
     if not args.checkpoint:
-        budget = ["train.iterations=100000", f"train.max_minutes={args.minutes}"] if args.minutes else []
+        budget = ["train.iterations=100000", f"train.max_minutes={args.minutes}"] if args.minutes is not None else []
         fallkit(*TRAIN, *budget, *([f"env.poses={args.poses}"] if args.poses else []), *extra, f"hydra.run.dir={run}")
     train_s = time.perf_counter() - start
     results = {}
