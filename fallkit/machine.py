@@ -16,7 +16,7 @@ folder is per user (the cache folder): other users' processes are not seen.
 Subnormal floats. x86 computes with subnormal floats (|x| < 1.2e-38) an order of magnitude
 slower, and a trained critic makes many: its later layers take inputs far below zero, whose
 ELU goes through exp(x) < 1e-38. Unflushed, biped20's update slowed from 0.28 s per iteration
-to 0.36 s by iteration 1200 and 0.39 s by 4000 (docs/training.md); the trainer's update runs
+to 0.36 s by iteration 1200 and 0.39 s by 4000 (docs/learning_log.md); the trainer's update runs
 in `subnormals_flushed()` and stays at 0.28 s. Only torch's threads flush: MuJoCo's physics
 and its threads keep IEEE arithmetic.
 """

@@ -6,7 +6,7 @@ The paper draws it uniformly from the training split, whatever the fall's initia
 (its capture point, `fallkit.pose_choice`): more training falls whose end pose lies the way they
 fall. It was built because trained policies seemed to lose many of the falls the open-loop seek
 lands right; measured, it kept no more of them and turned fewer of the others, and that split turned
-out to select on seek's own outcome (docs/training.md: "Training end poses paired with the way the
+out to select on seek's own outcome (docs/learning_log.md: "Training end poses paired with the way the
 fall heads", "The easy falls, the other way round"). Off by default.
 
 Only the training draw changes. Evaluation, render and sim2sim reset their worlds to given falls
