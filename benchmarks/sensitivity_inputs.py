@@ -16,6 +16,12 @@ weights, how much the learned deviation (the MLP's share of the action) changes 
 weight is 4x, when every weight is 4x, and — for scale — when the end pose is another fall's, each relative
 to the deviation's size, averaged over the fall.
 
+`return_at_default` (with `--unconditioned`): both policies replayed on the same falls with the task's reward
+switched on at the robot's weights — the return each earns by the reward the unconditioned policy was trained
+for, per term (the impact term also per component), and the conditioned minus the unconditioned with its 95 %
+bootstrap interval. It says whether the conditioned policy's behaviour at 1x, the baseline of
+`head_p95_reduction`, is better or worse at the task than the policy trained at those weights alone.
+
     python benchmarks/sensitivity_inputs.py [--out runs/sensitivity_inputs] [--checkpoint RUN]
         [--unconditioned RUN]   # e.g. experiments/battery/<time>/1_biped20_battery_baseline, evaluated here on
                                 # the same falls: the cost of conditioning at the default weights against a
@@ -98,6 +104,43 @@ def reading(run: Path, falls: int = 256) -> dict:
                 changes[name].append(((net.deviation(o) - base).norm(dim=-1).mean() / size).item())
         td = env.step(td.set("action", setup.policy(td.select("policy"))["action"]))["next"]
     return {name: round(sum(v) / len(v), 3) for name, v in changes.items()}
+
+
+@torch.no_grad()
+def task_return(run: Path, falls: int = 512) -> tuple[dict[str, np.ndarray], torch.Tensor]:
+    """Each fall's return under the task's reward at the robot's weights — the reward a policy trained at those
+    weights maximises; the evaluation switches it off — replayed on `falls` falls of the eval seed with the
+    policy's mean action: per reward term (the impact term also per component), and the falls' initial states,
+    so two policies' returns can be checked to pair."""
+    from fallkit.env.build import make_env
+    from fallkit.eval.evaluate import eval_run_config, prepare
+    from fallkit.eval.rollout import draw_trials
+    from fallkit.robots import robot_spec
+
+    setup = prepare(fallkit_config(run))
+    config = eval_run_config(setup.config, setup.config.eval.seconds)
+    config = config.model_copy(update={"reward": setup.config.reward})  # the training reward, on
+    env = make_env(config, robot_spec(config.robot), split=setup.split, seed=config.eval.seed, num_envs=falls,
+                   poses=setup.poses)  # fmt: skip
+    trials = draw_trials(env, falls, config.eval.seed)
+    td = env.reset_to(trials.qpos, trials.qvel, trials.pose_ids)
+    columns = torch.zeros(falls, len(env.rewards.columns))
+    for _ in range(env.max_steps):
+        td = env.step(td.set("action", setup.policy(td.select("policy"))["action"]))["next"]
+        columns += td["reward_terms"]
+    out = {"return": columns.sum(dim=1).numpy()}
+    for i, name in enumerate(env.rewards.columns):  # "impact/head": a component's share of the impact term
+        term = name.split("/")[0]
+        out[term] = out.get(term, 0.0) + columns[:, i].numpy()
+        if "/" in name:
+            out[name] = columns[:, i].numpy()
+    return out, trials.qpos
+
+
+def mean_difference_interval(x: np.ndarray, y: np.ndarray, draws: int = 2000) -> list[float]:
+    """95 % bootstrap interval of mean(x − y), the falls resampled in pairs."""
+    idx = np.random.default_rng(0).integers(0, len(x), size=(draws, len(x)))
+    return [round(float(v), 2) for v in np.percentile((x - y)[idx].mean(axis=1), [2.5, 97.5])]
 
 
 def p95_reduction_interval(default: Path, changed: Path, component: str = "head", draws: int = 2000) -> list[float]:
@@ -185,6 +228,16 @@ def main() -> None:
         # comparison, which stays within the conditioned policy; see docs/sensitivity_inputs.md)
         report["head_p95_4x_vs_unconditioned"] = round(1.0 - head["head_p95"] / u["head_p95"], 3)
         report["head_p95_4x_vs_unconditioned_ci95"] = p95_reduction_interval(where, out / "eval_head_4x")
+        # which of the two does the task at the robot's weights better, by its own reward: the target compares
+        # the conditioned policy with itself at 1x, so it counts head protection at 1x against it
+        mine, at = task_return(run, args.trials)
+        theirs, their_at = task_return(Path(args.unconditioned), args.trials)
+        if not torch.equal(at, their_at):
+            sys.exit(f"sensitivity_inputs: {run} and {args.unconditioned} replayed other falls (another dataset?)")
+        report["return_at_default"] = {
+            who: {k: round(float(v.mean()), 2) for k, v in r.items()} for who, r in (("conditioned", mine), ("unconditioned", theirs))
+        }  # fmt: skip
+        report["return_at_default"]["difference_ci95"] = mean_difference_interval(mine["return"], theirs["return"])
     print(json.dumps(report))
 
 
