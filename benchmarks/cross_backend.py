@@ -18,20 +18,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from fallkit_cli import fallkit
 
 METRICS = ("max_impact_force", "fall_mean_impact_force", "mean_impact_force", "mroe", "mje", "rest_time")
 
 
 def evaluate(checkpoint: str, backend: list[str], trials: int, out: Path) -> dict[str, np.ndarray]:
-    cmd = [sys.executable, "-m", "fallkit", "mode=eval", f"checkpoint={checkpoint}", f"eval.trials={trials}",
-           "eval.seek_reference=false", f"hydra.run.dir={out}", *backend]  # fmt: skip
-    subprocess.run(cmd, check=True, capture_output=True)
+    fallkit("mode=eval", f"checkpoint={checkpoint}", f"eval.trials={trials}", "eval.seek_reference=false",
+            f"hydra.run.dir={out}", *backend, quiet=True)  # fmt: skip
     with np.load(out / "eval_trials.npz") as z:
         return {m: z[f"policy/{m}"] for m in METRICS}
 

@@ -18,19 +18,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from fallkit_cli import fallkit
 
 
 def train_one_iteration(root: Path, overrides: list[str]) -> Path:
     run = root / "run"
-    subprocess.run([sys.executable, "-m", "fallkit", "train.iterations=1", "sim.num_envs=16", "train.num_steps=4", "train.evaluate=false",
-                    f"hydra.run.dir={run}", *overrides], check=True, capture_output=True)  # fmt: skip
+    fallkit("train.iterations=1", "sim.num_envs=16", "train.num_steps=4", "train.evaluate=false", f"hydra.run.dir={run}",
+            *overrides, quiet=True)  # fmt: skip
     return run
 
 
@@ -69,8 +68,7 @@ def main() -> None:
     run = args.run or train_one_iteration(root, args.overrides)
     export = root / "export"
     export.mkdir(exist_ok=True)
-    subprocess.run([sys.executable, "-m", "fallkit", "mode=export", f"checkpoint={run}", f"hydra.run.dir={export}"],
-                   check=True, capture_output=True)  # fmt: skip
+    fallkit("mode=export", f"checkpoint={run}", f"hydra.run.dir={export}", quiet=True)
     states = recorded_states(run, 150)
 
     from fallkit.deploy import FallController

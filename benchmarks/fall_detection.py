@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from fallkit_cli import fallkit
 
 
 def update_time_ms(repeats: int = 20) -> float:
@@ -72,12 +71,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp)
         start = time.perf_counter()
-        r = subprocess.run([sys.executable, "-m", "fallkit", "mode=detect", f"detector.pushes.count={args.pushes}",
-                            f"hydra.run.dir={out}", *args.overrides], capture_output=True, text=True)  # fmt: skip
+        stdout = fallkit("mode=detect", f"detector.pushes.count={args.pushes}", f"hydra.run.dir={out}", *args.overrides,
+                         quiet=True)  # fmt: skip
         seconds = time.perf_counter() - start
-        if r.returncode != 0:
-            sys.exit(f"mode=detect failed:\n{r.stderr[-3000:]}")
-        print(r.stdout)
+        print(stdout)
         report = json.loads((out / "detection.json").read_text())
     t = {k: round(v, 4) if isinstance(v, float) else v for k, v in report["table"].items()}
     print(json.dumps({

@@ -25,14 +25,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import yaml
+from fallkit_cli import fallkit
 
 from fallkit.eval.report import RATIOS, ratios
 from fallkit.eval.rollout import SEEK
@@ -43,14 +41,9 @@ def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
     backend = ["sim=warp", f"sim.num_envs={args.envs or 4096}"] if args.backend == "warp" else []
     if args.backend == "mujoco" and args.envs is not None:
         backend.append(f"sim.num_envs={args.envs}")
-    cmd = [
-        sys.executable, "-m", "fallkit", "robot=biped20", "train=quick", f"train.max_minutes={args.minutes}",
-        f"seed={seed}", f"eval.trials={args.trials}", f"hydra.run.dir={run_dir}", *backend, *args.overrides,
-    ]  # fmt: skip
     started = time.monotonic()
-    done = subprocess.run(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    if done.returncode != 0:  # its own error is printed above; no traceback of ours on top of it
-        sys.exit(f"learning.py: the training of seed {seed} failed (exit {done.returncode}); its run directory: {run_dir}")
+    fallkit("robot=biped20", "train=quick", f"train.max_minutes={args.minutes}", f"seed={seed}",
+            f"eval.trials={args.trials}", f"hydra.run.dir={run_dir}", *backend, *args.overrides)  # fmt: skip
     wall = time.monotonic() - started
     rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
     resolved = yaml.safe_load((run_dir / "resolved_config.yaml").read_text())

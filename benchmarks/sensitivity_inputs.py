@@ -40,24 +40,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from fallkit_cli import fallkit
 
 ROBOT = "robot=biped20_battery_baseline"
 TRAIN = [ROBOT, "train=quick", "train.iterations=450", "train.max_minutes=null", "eval.trials=512",
          "env.sensitivity_inputs.enabled=true", "seed=0"]  # fmt: skip
 SETTINGS = {"default": [], "head_4x": ["robot.sensitivity.head=4.0"], "battery_5": ["robot.sensitivity.battery=5.0"]}
-
-
-def fallkit(*overrides: str) -> None:
-    done = subprocess.run([sys.executable, "-m", "fallkit", *overrides])
-    if done.returncode != 0:  # its own one-line error is printed above; no traceback of ours on top of it
-        sys.exit(f"sensitivity_inputs.py: `python -m fallkit {' '.join(overrides)}` failed (exit {done.returncode})")
 
 
 def summary(eval_json: Path) -> dict:
