@@ -65,20 +65,31 @@ def summary(eval_json: Path) -> dict:
     }  # fmt: skip
 
 
-@torch.no_grad()
-def reading(run: Path, falls: int = 256) -> dict:
-    """How much the learned deviation moves with the observed weights, and with another end pose (see above)."""
+def eval_falls(run: Path, falls: int, reward: bool = False):
+    """The checkpoint's policy (`prepare`'s setup), an env of `falls` worlds built as its evaluation builds one —
+    with the task's reward switched on if `reward` (the evaluation switches it off) — and `falls` falls of the
+    eval seed."""
     from fallkit.env.build import make_env
-    from fallkit.env.observations import actor_slices
     from fallkit.eval.evaluate import eval_run_config, prepare
     from fallkit.eval.rollout import draw_trials
     from fallkit.robots import robot_spec
 
     setup = prepare(fallkit_config(run))
-    net, config = setup.policy.module.net, eval_run_config(setup.config, setup.config.eval.seconds)
+    config = eval_run_config(setup.config, setup.config.eval.seconds)
+    if reward:
+        config = config.model_copy(update={"reward": setup.config.reward})
     env = make_env(config, robot_spec(config.robot), split=setup.split, seed=config.eval.seed, num_envs=falls,
                    poses=setup.poses)  # fmt: skip
-    trials = draw_trials(env, falls, config.eval.seed)
+    return setup, env, draw_trials(env, falls, config.eval.seed)
+
+
+@torch.no_grad()
+def reading(run: Path, falls: int = 256) -> dict:
+    """How much the learned deviation moves with the observed weights, and with another end pose (see above)."""
+    from fallkit.env.observations import actor_slices
+
+    setup, env, trials = eval_falls(run, falls)
+    net = setup.policy.module.net
     cols = actor_slices(env.spec, env.observes_sensitivity, env.observes_gravity)
     weights, head = cols["sensitivity"], cols["sensitivity"].start + env.spec.component_names.index("head")
     goal = torch.cat([torch.arange(cols[n].start, cols[n].stop) for n in ("goal_root_quat", "goal_joint_pos")])
@@ -106,17 +117,7 @@ def task_return(run: Path, falls: int = 512) -> tuple[dict[str, np.ndarray], tor
     weights maximises; the evaluation switches it off — replayed on `falls` falls of the eval seed with the
     policy's mean action: per reward term (the impact term also per component), and the falls' initial states,
     so two policies' returns can be checked to pair."""
-    from fallkit.env.build import make_env
-    from fallkit.eval.evaluate import eval_run_config, prepare
-    from fallkit.eval.rollout import draw_trials
-    from fallkit.robots import robot_spec
-
-    setup = prepare(fallkit_config(run))
-    config = eval_run_config(setup.config, setup.config.eval.seconds)
-    config = config.model_copy(update={"reward": setup.config.reward})  # the training reward, on
-    env = make_env(config, robot_spec(config.robot), split=setup.split, seed=config.eval.seed, num_envs=falls,
-                   poses=setup.poses)  # fmt: skip
-    trials = draw_trials(env, falls, config.eval.seed)
+    setup, env, trials = eval_falls(run, falls, reward=True)
     td = env.reset_to(trials.qpos, trials.qvel, trials.pose_ids)
     columns = torch.zeros(falls, len(env.rewards.columns))
     for _ in range(env.max_steps):
@@ -222,8 +223,8 @@ def main() -> None:
         # comparison, which stays within the conditioned policy; see docs/sensitivity_inputs.md)
         report["head_p95_4x_vs_unconditioned"] = round(1.0 - head["head_p95"] / u["head_p95"], 3)
         report["head_p95_4x_vs_unconditioned_ci95"] = p95_reduction_interval(where, out / "eval_head_4x")
-        # which of the two does the task at the robot's weights better, by its own reward: the target compares
-        # the conditioned policy with itself at 1x, so it counts head protection at 1x against it
+        # which of the two does the task at the robot's weights better, by its own reward (the baseline of
+        # head_p95_reduction is the conditioned policy at 1x, not the unconditioned one)
         mine, at = task_return(run, args.trials)
         theirs, their_at = task_return(Path(args.unconditioned), args.trials)
         if not torch.equal(at, their_at):
