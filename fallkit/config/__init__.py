@@ -95,15 +95,6 @@ class FallkitConfig(Section):
         return self
 
     @model_validator(mode="after")
-    def _readout_needs_drawn_weights(self) -> "FallkitConfig":
-        if self.train.sensitivity_readout and not self.env.sensitivity_inputs.enabled:
-            raise ValueError(
-                "train.sensitivity_readout reads the sensitivity weights the policy observes: set "
-                "env.sensitivity_inputs.enabled=true"
-            )
-        return self
-
-    @model_validator(mode="after")
     def _relabel_needs_drawn_weights(self) -> "FallkitConfig":
         inputs = self.env.sensitivity_inputs
         if self.train.ppo.relabel_sensitivity and not (inputs.enabled and inputs.low < inputs.high):

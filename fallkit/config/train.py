@@ -266,13 +266,6 @@ class TrainConfig(Section):
         "= bfloat16 on such a CPU, float32 elsewhere (resolved when training starts; the checkpoint records which). "
         "Training only: a trained policy is evaluated and exported in float32",
     )
-    sensitivity_readout: bool = Field(
-        False,
-        description="with env.sensitivity_inputs: the actor's last layer gains a term per drawn component, "
-        "s_c·(W_c h), s_c = ln w_c − ln of the robot's weight, h the last hidden layer (fallkit.rl.models."
-        "SensitivityReadout): a weight changes the action through its own readout, not only as one input among "
-        "the observation's; zero at the robot's weights and at initialisation",
-    )
     init_from: str | None = Field(
         None,
         description="start the actor and critic from a trained policy (checkpoint or run dir): its weights, "

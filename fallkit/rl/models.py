@@ -15,7 +15,7 @@ from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
 from fallkit.config import FallkitConfig
-from fallkit.env.observations import actor_slices, sensitivity_input
+from fallkit.env.observations import actor_slices
 from fallkit.robots.spec import RobotSpec
 
 
@@ -147,40 +147,6 @@ def joint_prior(config: FallkitConfig, spec: RobotSpec) -> JointPrior | None:
     return JointPrior(spec, config.env.action_scale, seek=tc.prior == "seek", fade=tc.fade_residual, power=tc.prior_power)
 
 
-class SensitivityReadout(nn.Module):
-    """The policy mean's term per sensitivity weight: Σ_c s_c · (W_c h), with s_c = ln w_c − ln of the robot's
-    weight and h the actor's last hidden layer (train.sensitivity_readout).
-
-    As one input among ~150, a weight shifts the first layer's features a little and the network learns
-    the mean behaviour over the drawn weights first (docs/sensitivity_inputs.md). Here a weight scales a
-    readout of its own: at the robot's weights (s = 0) the policy is the base network alone, and W_c is
-    learned only from episodes whose weight differs, in proportion to how much. W starts at zero, so the
-    first actions are the base network's. `offset` is a buffer: a checkpoint evaluated at other weights
-    keeps the weights it was trained around.
-    """
-
-    def __init__(self, columns: list[int], offset: torch.Tensor, hidden: int, act_dim: int):
-        super().__init__()
-        self.register_buffer("columns", torch.tensor(columns, dtype=torch.long))
-        self.register_buffer("offset", offset.float().clone())
-        self.weight = nn.Parameter(torch.zeros(len(columns) * hidden, act_dim))
-
-    def forward(self, obs: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
-        s = obs[..., self.columns] - self.offset  # [.., C]
-        return ((s.unsqueeze(-1) * hidden.unsqueeze(-2)).flatten(-2)) @ self.weight
-
-
-def sensitivity_readout(config: FallkitConfig, spec: RobotSpec, act_dim: int) -> SensitivityReadout | None:
-    """The readout of the drawn components' weights (train.sensitivity_readout), or None."""
-    if not config.train.sensitivity_readout:
-        return None
-    drawn = config.env.sensitivity_inputs.components or spec.component_names
-    index = [spec.component_names.index(c) for c in drawn]
-    start = actor_slices(spec, sensitivity=True, gravity=config.env.observe_gravity)["sensitivity"].start
-    offset = sensitivity_input(torch.as_tensor(spec.sensitivity, dtype=torch.float32))[index]
-    return SensitivityReadout([start + i for i in index], offset, config.train.actor_hidden[-1], act_dim)
-
-
 class GaussianPolicyNet(nn.Module):
     """obs -> (loc, scale); scale = exp(log_std), a learned parameter independent of the state.
 
@@ -199,7 +165,6 @@ class GaussianPolicyNet(nn.Module):
         prior: JointPrior | None = None,
         noise_floor: float | None = None,
         precision: Precision = "float32",
-        readout: SensitivityReadout | None = None,
     ):
         super().__init__()
         if noise_floor is not None and (prior is None or not prior.fade):
@@ -209,26 +174,18 @@ class GaussianPolicyNet(nn.Module):
         self.prior = prior
         self.noise_floor = noise_floor
         self.precision = precision
-        self.readout = readout
         self.log_std = nn.Parameter(torch.full((act_dim,), float(torch.log(torch.tensor(init_std)))))
         # Small last layer: the first actions are the prior's (or the nominal pose without one).
         nn.init.uniform_(self.mean[-1].weight, -1e-3, 1e-3)
         nn.init.zeros_(self.mean[-1].bias)
 
-    def network_output(self, obs: torch.Tensor) -> torch.Tensor:
-        """The MLP's output (with the sensitivity readout's term, if any), before the prior's weighting."""
-        if self.readout is None:
-            return run_mlp(self.mean, self.norm(obs), self.precision)
-        hidden = run_mlp(self.mean[:-1], self.norm(obs), self.precision)
-        return run_mlp(self.mean[-1:], hidden, self.precision) + self.readout(obs, hidden)
-
     def deviation(self, obs: torch.Tensor) -> torch.Tensor:
         """The learned deviation: the MLP's share of the policy mean (all of it without a prior)."""
-        loc = self.network_output(obs)
+        loc = run_mlp(self.mean, self.norm(obs), self.precision)
         return loc if self.prior is None else loc * self.prior.residual_weight(obs)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.network_output(obs)
+        loc = run_mlp(self.mean, self.norm(obs), self.precision)
         scale = self.log_std.exp().expand_as(loc)
         if self.prior is not None:
             weight = self.prior.residual_weight(obs)
@@ -309,11 +266,10 @@ def make_actor(
     action_spec=None,
     noise_floor: float | None = None,
     precision: Precision = "float32",
-    readout: SensitivityReadout | None = None,
 ) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
     net = TensorDictModule(
-        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision, readout),
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision),
         in_keys=["policy"],
         out_keys=["loc", "scale"],
     )

@@ -21,12 +21,7 @@ from torch import nn
 from fallkit.config import FallkitConfig, validate
 from fallkit.errors import CheckpointError
 from fallkit.rl.checkpoint import load_checkpoint
-from fallkit.rl.models import (
-    GaussianPolicyNet,
-    ValueNet,
-    joint_prior,
-    sensitivity_readout,
-)
+from fallkit.rl.models import GaussianPolicyNet, ValueNet, joint_prior
 from fallkit.robots import robot_spec
 from fallkit.robots.spec import RobotSpec
 
@@ -64,10 +59,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedP
     weights = {k.split("module.0.module.", 1)[1]: v for k, v in ckpt["actor"].items() if "module.0.module." in k}
     obs_dim = weights["norm.mean"].shape[0]
     act_dim = weights["log_std"].shape[0]
-    net = GaussianPolicyNet(
-        obs_dim, act_dim, config.train.actor_hidden, 1.0, joint_prior(config, spec),
-        readout=sensitivity_readout(config, spec, act_dim),
-    )
+    net = GaussianPolicyNet(obs_dim, act_dim, config.train.actor_hidden, 1.0, joint_prior(config, spec))
     net.load_state_dict(weights)
     net.to(device).eval()
     module = TensorDictModule(MeanAction(net), in_keys=["policy"], out_keys=["action"])

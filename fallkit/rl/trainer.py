@@ -35,24 +35,10 @@ from fallkit.env.fall_env import FallEnv
 from fallkit.env.mirror import ObservationMirror, observation_mirror
 from fallkit.errors import CheckpointError, ConfigError, TrainingError
 from fallkit.machine import core_share, running_processes, subnormals_flushed
-from fallkit.rl.checkpoint import (
-    checkpoint_run_dir,
-    load_checkpoint,
-    run_checkpoints,
-    save_checkpoint,
-    shape_mismatch,
-)
+from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint, shape_mismatch
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.init_from import fresh_statistics, start_from
-from fallkit.rl.models import (
-    joint_prior,
-    make_actor,
-    make_critic,
-    policy_net,
-    resolve_precision,
-    sensitivity_readout,
-    value_net,
-)
+from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO, critic_heads
 from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
@@ -94,8 +80,7 @@ class Trainer:
         act_dim = self.env.action_spec.shape[-1]
         prior = joint_prior(config, self.spec)
         self.actor = make_actor(
-            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise,
-            precision=tc.precision, readout=sensitivity_readout(config, self.spec, act_dim),
+            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
         ).to(self.env.device)
         self.critic, heads = critic_for(config, self.spec, self.env.rewards, critic_dim, tc.precision)
         self.critic = self.critic.to(self.env.device)
