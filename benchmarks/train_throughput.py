@@ -56,6 +56,63 @@ def config_for(args, envs: int):
     return validate(raw)
 
 
+def time_update(config, spec, rewards, dims: tuple[int, int, int], device, precision: str, iterations: int) -> float:
+    """Seconds per PPO update (the config's networks, epochs and minibatches) on random data of one
+    iteration's shapes: what the update costs with no simulator in the way."""
+    (obs_dim, critic_dim, act_dim), tc = dims, config.train
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    shape = (config.sim.num_envs, tc.num_steps)
+    r = lambda *tail: torch.randn(*shape, *tail, device=device)  # noqa: E731
+    fake = TensorDict(
+        {
+            "policy": r(obs_dim), "critic": r(critic_dim), "action": r(act_dim), "loc": r(act_dim),
+            "scale": torch.ones(*shape, act_dim, device=device), "action_log_prob": r(),
+            "next": {
+                "critic": r(critic_dim), "reward": r(1), "reward_terms": r(len(rewards.columns)),
+                "done": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
+                "terminated": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
+            },
+        },
+        batch_size=shape, device=device,
+    )  # fmt: skip
+    actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
+    critic = critic_for(config, spec, rewards, critic_dim, precision)[0].to(device)
+    ppo = PPO(actor, critic, tc.ppo, rewards=rewards)
+    if ppo.column_head is not None:  # the reward layout lives on the env's device, here maybe not the update's
+        ppo.column_head = ppo.column_head.to(device)
+    torch.set_num_threads(config.train.torch_threads or os.cpu_count() or 1)
+    with subnormals_flushed():  # as the trainer's update
+        ppo.update(fake.clone())
+        sync()
+        t = time.perf_counter()
+        for _ in range(iterations):
+            ppo.update(fake.clone())
+        sync()
+        t_update = (time.perf_counter() - t) / iterations
+    torch.set_num_threads(1)
+    return t_update
+
+
+def measure_update_only(args, envs: int) -> dict:
+    """--update-only: the PPO update alone on args.device, in each precision asked. A MuJoCo C env of
+    two worlds only gives the observation sizes and the reward layout: no Warp kernel is compiled."""
+    cpu_args = argparse.Namespace(**{**vars(args), "backend": "mujoco"})
+    config = config_for(cpu_args, envs)  # train=quick with args.hidden: the update's shapes
+    spec = robot_spec(config.robot)
+    env = make_env(config_for(cpu_args, 2), spec, "train", seed=0)
+    dims = (env.observation_spec["policy"].shape[-1], env.observation_spec["critic"].shape[-1], env.action_spec.shape[-1])
+    out = {"envs": envs, "device": args.device, "hidden": args.hidden}
+    for name in args.update_precisions:
+        tf32 = name == "tf32"  # float32 storage, TensorFloat-32 matrix products (CUDA only)
+        if torch.device(args.device).type == "cuda":
+            torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = tf32
+        precision = "float32" if tf32 else resolve_precision(name, args.device)
+        out[name] = round(time_update(config, spec, env.rewards, dims, args.device, precision, args.iterations), 4)
+        print(f"{envs} envs x {config.train.num_steps} steps, 3x{args.hidden}: PPO update on {args.device} in {name} "
+              f"({precision}{' + TF32' if tf32 else ''}): {out[name]:.3f} s")  # fmt: skip
+    return out
+
+
 def measure(args, envs: int) -> dict:
     """The three timings and their ratios for one world count."""
     config = config_for(args, envs)
@@ -115,34 +172,7 @@ def measure(args, envs: int) -> dict:
     sync()
     t_sim = (time.perf_counter() - t) / args.iterations
 
-    # --- the same update on random data ---------------------------------------------------
-    shape = (envs, tc.num_steps)
-    r = lambda *tail: torch.randn(*shape, *tail, device=device)  # noqa: E731
-    fake = TensorDict(
-        {
-            "policy": r(obs_dim), "critic": r(critic_dim), "action": r(act_dim), "loc": r(act_dim),
-            "scale": torch.ones(*shape, act_dim, device=device), "action_log_prob": r(),
-            "next": {
-                "critic": r(critic_dim), "reward": r(1), "reward_terms": r(len(env.rewards.columns)),
-                "done": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
-                "terminated": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
-            },
-        },
-        batch_size=shape, device=device,
-    )  # fmt: skip
-    actor2 = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
-    critic2 = critic_for(config, spec, env.rewards, critic_dim, precision)[0].to(device)
-    ppo2 = PPO(actor2, critic2, tc.ppo, rewards=env.rewards)
-    torch.set_num_threads(update_threads)
-    with subnormals_flushed():  # as the trainer's update
-        ppo2.update(fake.clone())
-        sync()
-        t = time.perf_counter()
-        for _ in range(args.iterations):
-            ppo2.update(fake.clone())
-        sync()
-        t_update = (time.perf_counter() - t) / args.iterations
-    torch.set_num_threads(1)
+    t_update = time_update(config, spec, env.rewards, (obs_dim, critic_dim, act_dim), device, precision, args.iterations)
 
     steps = envs * tc.num_steps
     out = {
@@ -172,10 +202,19 @@ def main() -> None:
     p.add_argument("--hidden", type=int, default=None, help="width of the 3 layers (default: 256; warp 512)")
     p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto", help="train.precision")
+    p.add_argument("--update-only", nargs="+", dest="update_precisions", metavar="PRECISION", default=None,
+                   choices=("auto", "float32", "bfloat16", "tf32"),
+                   help="time only the PPO update on --device, in each precision (tf32: float32 with TensorFloat-32 "
+                        "products, CUDA only); builds no simulator, so compiles no Warp kernel")  # fmt: skip
     args = p.parse_args()
     warp = args.backend == "warp"
     args.envs = args.envs or ([4096, 16384] if warp else [256])
     args.hidden = args.hidden or (512 if warp else 256)
+    if args.update_precisions:
+        if "tf32" in args.update_precisions and not args.device.startswith("cuda"):
+            p.error("--update-only tf32 needs a CUDA --device (TensorFloat-32 is an NVIDIA GPU format)")
+        print(json.dumps({"update_only": [measure_update_only(args, n) for n in args.envs]}))
+        return
     runs = [measure(args, n) for n in args.envs]
     summary = {
         "backend": args.backend, "device": args.device if warp else "cpu", "steps": args.steps,
