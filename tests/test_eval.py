@@ -254,3 +254,22 @@ def test_report_cli_prints_the_ratio_lines_or_one_clear_error(tmp_path):
     ]
     missing = subprocess.run([*cmd, str(tmp_path / "nosuch")], capture_output=True, text=True, timeout=120)
     assert missing.returncode == 2 and missing.stderr.count("\n") == 1 and "no eval.json here" in missing.stderr
+
+
+def test_learning_curve_smoothing_keeps_the_ends(tmp_path):
+    """The learning curve's moving average must not bend toward 0 at the ends (zero padding did): a
+    run's last iterations are what a reader looks at. Gaps are filled, the mean of a ramp is kept."""
+    from fallkit.eval.plots import learning_curve, moving_average
+
+    assert np.allclose(moving_average(np.full(40, -0.25), 5), -0.25)
+    ramp = np.arange(40.0)
+    smooth = moving_average(ramp, 5)
+    assert np.allclose(smooth[2:-2], ramp[2:-2]) and smooth[-1] == pytest.approx(38.0)  # mean of 37, 38, 39
+    gap = ramp.copy()
+    gap[10] = np.nan
+    assert np.allclose(moving_average(gap, 1), ramp)
+    rows = ["iteration,reward,episode/max_impact_force,reward_terms/impact"]
+    rows += [f"{i},{-1 + i / 100},{1500 - i},{-0.5}" for i in range(60)]
+    csv = tmp_path / "metrics.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    assert learning_curve(csv, tmp_path / "curve.png").stat().st_size > 0

@@ -99,6 +99,20 @@ def plot_all(results: dict[str, TrialMetrics], components: list[str], out_dir: P
     ]
 
 
+def moving_average(y: np.ndarray, k: int) -> np.ndarray:
+    """Centred mean over k points, gaps (NaN) filled by interpolation. Near the ends it averages over
+    the points there are: padding with zeros would bend every curve toward 0 in its first and last k/2
+    iterations, and a run's last iterations are the ones a reader looks at."""
+    ok = np.isfinite(y)
+    if ok.sum() < 2:
+        return y
+    y = np.interp(np.arange(len(y)), np.flatnonzero(ok), y[ok])
+    if k <= 1:
+        return y
+    window = np.ones(k)
+    return np.convolve(y, window, mode="same") / np.convolve(np.ones_like(y), window, mode="same")
+
+
 def learning_curve(metrics_csv: Path, path: Path, title: str = "") -> Path:
     """Training progress from metrics.csv: reward, episode impact and the reward terms per iteration."""
     import csv
@@ -112,12 +126,8 @@ def learning_curve(metrics_csv: Path, path: Path, title: str = "") -> Path:
     def column(key: str) -> np.ndarray:
         return np.array([float(r[key]) if r.get(key) not in (None, "") else np.nan for r in rows])
 
-    def smooth(y: np.ndarray, k: int = max(1, len(rows) // 50)) -> np.ndarray:
-        ok = np.isfinite(y)
-        if ok.sum() < 2:
-            return y
-        y = np.interp(np.arange(len(y)), np.flatnonzero(ok), y[ok])
-        return np.convolve(y, np.ones(k) / k, mode="same") if k > 1 else y
+    def smooth(y: np.ndarray) -> np.ndarray:
+        return moving_average(y, max(1, len(rows) // 50))
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     axes[0].plot(it, smooth(column("reward")))
