@@ -215,10 +215,6 @@ class TrainConfig(Section):
         description="LayerNorm after each hidden layer of the critic (Linear, LayerNorm, ELU), as BRO and SimBa "
         "use to keep a critic fitting moving targets; docs/training.md",
     )
-    activation: Literal["elu", "silu", "tanh"] = Field(
-        "elu", description="the hidden layers' nonlinearity, actor and critic: ELU is Table III's; SiLU (swish) is "
-        "Brax's and MuJoCo Playground's PPO default; docs/training.md"
-    )
     init_noise_std: float = Field(1.0, gt=0, description="initial policy std, in action units")
     prior: Literal["none", "hold", "seek"] = Field(
         "seek",

@@ -85,15 +85,11 @@ def run_mlp(layers: nn.Sequential, x: torch.Tensor, precision: Precision) -> tor
         return layers(x).float()
 
 
-ACTIVATIONS = {"elu": nn.ELU, "silu": nn.SiLU, "tanh": nn.Tanh}  # train.activation
-
-
-def mlp(in_dim: int, hidden: list[int], out_dim: int, layer_norm: bool = False, activation: str = "elu") -> nn.Sequential:
-    """ELU MLP (or train.activation's); with `layer_norm` each hidden layer is Linear, LayerNorm, ELU
-    (train.critic_layer_norm)."""
+def mlp(in_dim: int, hidden: list[int], out_dim: int, layer_norm: bool = False) -> nn.Sequential:
+    """ELU MLP; with `layer_norm` each hidden layer is Linear, LayerNorm, ELU (train.critic_layer_norm)."""
     layers: list[nn.Module] = []
     for h in hidden:
-        layers += [nn.Linear(in_dim, h), *([nn.LayerNorm(h)] if layer_norm else []), ACTIVATIONS[activation]()]
+        layers += [nn.Linear(in_dim, h), *([nn.LayerNorm(h)] if layer_norm else []), nn.ELU()]
         in_dim = h
     layers.append(nn.Linear(in_dim, out_dim))
     return nn.Sequential(*layers)
@@ -169,13 +165,12 @@ class GaussianPolicyNet(nn.Module):
         prior: JointPrior | None = None,
         noise_floor: float | None = None,
         precision: Precision = "float32",
-        activation: str = "elu",
     ):
         super().__init__()
         if noise_floor is not None and (prior is None or not prior.fade):
             raise ValueError("GaussianPolicyNet: noise_floor fades the noise with the residual: it needs a fading prior")
         self.norm = RunningNorm(obs_dim)
-        self.mean = mlp(obs_dim, hidden, act_dim, activation=activation)
+        self.mean = mlp(obs_dim, hidden, act_dim)
         self.prior = prior
         self.noise_floor = noise_floor
         self.precision = precision
@@ -223,11 +218,10 @@ class ValueNet(nn.Module):
         heads: int = 1,
         weight_columns: list[int] | None = None,
         layer_norm: bool = False,
-        activation: str = "elu",
     ):
         super().__init__()
         self.norm = RunningNorm(obs_dim)
-        self.value = mlp(obs_dim, hidden, heads, layer_norm, activation)
+        self.value = mlp(obs_dim, hidden, heads, layer_norm)
         self.precision = precision
         self.target = RunningNorm(heads) if normalize_target else None
         scaled = weight_columns is not None and any(c >= 0 for c in weight_columns)
@@ -272,11 +266,10 @@ def make_actor(
     action_spec=None,
     noise_floor: float | None = None,
     precision: Precision = "float32",
-    activation: str = "elu",
 ) -> ProbabilisticActor:
     """TensorDict keys: "policy" -> "loc", "scale" -> "action" (+ "action_log_prob")."""
     net = TensorDictModule(
-        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision, activation),
+        GaussianPolicyNet(obs_dim, act_dim, hidden, init_std, prior, noise_floor, precision),
         in_keys=["policy"],
         out_keys=["loc", "scale"],
     )
@@ -307,10 +300,9 @@ def make_critic(
     heads: int = 1,
     weight_columns: list[int] | None = None,
     layer_norm: bool = False,
-    activation: str = "elu",
 ) -> ValueOperator:
     """TensorDict keys: "critic" -> "state_value" [..., heads]."""
-    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads, weight_columns, layer_norm, activation)
+    net = ValueNet(obs_dim, hidden, normalize_target, precision, heads, weight_columns, layer_norm)
     return ValueOperator(net, in_keys=["critic"], out_keys=["state_value"])
 
 

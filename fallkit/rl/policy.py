@@ -59,7 +59,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> LoadedP
     weights = {k.split("module.0.module.", 1)[1]: v for k, v in ckpt["actor"].items() if "module.0.module." in k}
     obs_dim = weights["norm.mean"].shape[0]
     act_dim = weights["log_std"].shape[0]
-    net = GaussianPolicyNet(obs_dim, act_dim, config.train.actor_hidden, 1.0, joint_prior(config, spec), activation=config.train.activation)
+    net = GaussianPolicyNet(obs_dim, act_dim, config.train.actor_hidden, 1.0, joint_prior(config, spec))
     net.load_state_dict(weights)
     net.to(device).eval()
     module = TensorDictModule(MeanAction(net), in_keys=["policy"], out_keys=["action"])
@@ -73,6 +73,6 @@ def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> Va
     heads = weights[f"value.{output}.bias"].shape[0]  # > 1: a value per reward term
     columns = weights["weight_columns"].tolist() if "weight_columns" in weights else None  # w²-scaled impact heads
     net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads,
-                   weight_columns=columns, layer_norm=config.train.critic_layer_norm, activation=config.train.activation)  # fmt: skip
+                   weight_columns=columns, layer_norm=config.train.critic_layer_norm)  # fmt: skip
     net.load_state_dict(weights)
     return net.to(device).eval()

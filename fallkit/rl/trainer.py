@@ -79,8 +79,9 @@ class Trainer:
         obs_dim, critic_dim = (self.env.observation_spec[k].shape[-1] for k in ("policy", "critic"))
         act_dim = self.env.action_spec.shape[-1]
         prior = joint_prior(config, self.spec)
-        self.actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise,
-                                precision=tc.precision, activation=tc.activation).to(self.env.device)  # fmt: skip
+        self.actor = make_actor(
+            obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, prior, noise_floor=tc.fade_noise, precision=tc.precision
+        ).to(self.env.device)
         self.critic, heads = critic_for(config, self.spec, self.env.rewards, critic_dim, tc.precision)
         self.critic = self.critic.to(self.env.device)
         # checked with the replay off too: a misspelt score is an error, not a value waiting to bite later
@@ -326,7 +327,7 @@ class Trainer:
 def critic_for(config: FallkitConfig, spec: RobotSpec, rewards, obs_dim: int, precision: str) -> tuple[torch.nn.Module, list[str]]:
     """The critic a run builds from its config, and its heads' names: its layout read off the config in one place."""
     tc, (heads, weight_columns) = config.train, critic_heads(config, spec, rewards)
-    args = (tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns, tc.critic_layer_norm, tc.activation)
+    args = (tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns, tc.critic_layer_norm)
     return make_critic(obs_dim, *args), heads
 
 
