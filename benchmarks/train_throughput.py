@@ -2,7 +2,8 @@
 
 Measures, in one run, per world count, on either backend:
   iteration   wall time of a real training iteration, as fallkit.rl.trainer runs it, split
-              into collection (num_envs x num_steps with the policy) and the PPO update
+              into collection (num_envs x num_steps with the policy, from the trainer's staggered
+              episode clocks, so worlds restart at every step as in training) and the PPO update
               (+ normaliser update)
   simulation  the same number of env steps in pure simulation: the backend's sim.step with
               the nominal pose held, no policy, no env, no TensorDicts
@@ -136,6 +137,7 @@ def measure(args, envs: int) -> dict:
     critic = critic_for(config, spec, env.rewards, critic_dim, precision)[0].to(device)  # as the trainer builds it
     ppo = PPO(actor, critic, tc.ppo, rewards=env.rewards)
     td = env.reset()
+    env.stagger_episodes()  # as the trainer starts: episodes end and restart at every step, as in training
 
     def iteration(td):
         sync()
