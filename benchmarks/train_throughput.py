@@ -79,8 +79,6 @@ def time_update(config, spec, rewards, dims: tuple[int, int, int], device, preci
     actor = make_actor(obs_dim, act_dim, tc.actor_hidden, tc.init_noise_std, precision=precision).to(device)
     critic = critic_for(config, spec, rewards, critic_dim, precision)[0].to(device)
     ppo = PPO(actor, critic, tc.ppo, rewards=rewards)
-    if ppo.column_head is not None:  # the reward layout lives on the env's device, here maybe not the update's
-        ppo.column_head = ppo.column_head.to(device)
     torch.set_num_threads(config.train.torch_threads or os.cpu_count() or 1)
     with subnormals_flushed():  # as the trainer's update
         ppo.update(fake.clone())

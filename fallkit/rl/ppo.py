@@ -319,6 +319,7 @@ class PPO:
         self.critic(batch["next"])
         terms = batch["next", "reward_terms"]
         if self.column_head is not None:  # the impact per component summed back into its term's head
+            self.column_head = self.column_head.to(terms.device)  # once onto the batch's device
             terms = terms.new_zeros(*terms.shape[:-1], len(self.term_names)).index_add_(-1, self.column_head, terms)
         if self.potential is not None:  # the shaping γΦ(s') − Φ(s) is the orientation head's to learn
             shaping = batch["next", SHAPED_REWARD] - batch["next", "reward"]
