@@ -104,7 +104,7 @@ def test_the_copy_starts_at_ratio_one_and_its_advantage_carries_the_truncated_im
     batch = trainer.collect()
     ppo, keys = trainer.ppo, trainer.ppo.loss.tensor_keys
     plain = ppo.relabels[0](batch.clone(), torch.Generator().manual_seed(5))
-    ppo._advantages(plain)
+    ppo.advantages(plain)
     _, image, _ = ppo._learning_samples(batch.clone(), value_net(trainer.critic), torch.Generator().manual_seed(5))
     with torch.no_grad():
         at_copy = trainer.actor.get_dist(plain.select("policy")).log_prob(plain[keys.action]).reshape(-1)

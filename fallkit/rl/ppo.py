@@ -269,13 +269,13 @@ class PPO:
         copy under other sensitivity weights or end poses (train.ppo.relabel_*; else None); the
         advantages' spread per term. The value targets join the critic's target statistics first."""
         keys = self.loss.tensor_keys
-        advantage_stats = self._advantages(batch)
+        advantage_stats = self.advantages(batch)
         image = None
         if self.relabels:
             image = batch
             for relabel in self.relabels:
                 image = relabel(image, generator)
-            self._advantages(image)
+            self.advantages(image)
             weigh_copy(self.actor, batch, image, self.loss.tensor_keys)
         if critic_net.target is not None:
             targets = batch[keys.value_target]
@@ -299,7 +299,7 @@ class PPO:
         return data, unmirrored
 
     @torch.no_grad()
-    def _advantages(self, batch: TensorDict) -> dict[str, torch.Tensor]:
+    def advantages(self, batch: TensorDict) -> dict[str, torch.Tensor]:
         """GAE into the batch (advantage, value target); with a value per term, each term's advantage spread."""
         if self.potential is not None:
             # the shaping joins the orientation head, so it discounts as that head does (policy invariance)
