@@ -11,7 +11,7 @@ import torch
 
 from fallkit import registry
 from fallkit.config import InitialStateConfig
-from fallkit.env.samplers.initial_state import InitialStateSampler
+from fallkit.env.samplers.initial_state import InitialStateSampler, InitialStateStock
 from fallkit.poses.checker import PoseChecker
 from fallkit.rotations import quat_from_euler, quat_mul, quat_rotate
 
@@ -127,3 +127,33 @@ def test_entry_point_and_seeding(biped):
     up = quat_rotate(a[0][:, 3:7], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(8, 3))
     assert (up[:, 2] >= math.cos(math.radians(10.0)) ** 2 - 1e-9).all()
     assert np.isfinite(a[0].numpy()).all()
+
+
+class _Counted:
+    """The real sampler, counting its calls."""
+
+    def __init__(self, sampler: InitialStateSampler):
+        self.sampler, self.calls = sampler, []
+
+    def sample(self, n: int, generator: torch.Generator):
+        self.calls.append(n)
+        return self.sampler.sample(n, generator)
+
+
+def test_the_stock_hands_out_the_samplers_states_in_order_drawing_in_bulk(biped, checker):
+    sampler = InitialStateSampler(biped, checker=checker)
+    stock = InitialStateStock(counted := _Counted(sampler), chunk=64)
+    g = torch.Generator().manual_seed(5)
+    taken = [stock.take(n, g) for n in (3, 5, 1, 70, 2)]  # 81 states
+    assert counted.calls == [64, 64]  # a draw only when the stock runs short, `chunk` at a time
+    assert [len(q) for q, _ in taken] == [3, 5, 1, 70, 2]
+    g = torch.Generator().manual_seed(5)
+    direct = [sampler.sample(64, g) for _ in range(2)]
+    qpos, qvel = torch.cat([q for q, _ in direct]), torch.cat([v for _, v in direct])
+    assert torch.equal(torch.cat([q for q, _ in taken]), qpos[:81])
+    assert torch.equal(torch.cat([v for _, v in taken]), qvel[:81])
+    # what is left in stock is state: a stock loaded with it continues with the same states
+    again = InitialStateStock(sampler, chunk=64)
+    again.load(stock.state())
+    assert torch.equal(again.take(47, torch.Generator())[0], qpos[81:])
+    assert stock.take(200, g)[0].shape == (200, qpos.shape[1])  # more than a chunk at once: drawn as asked

@@ -55,6 +55,7 @@ from fallkit.env.rewards.context import RewardContext, RewardSum
 from fallkit.env.rewards.tracking import blend
 from fallkit.env.run_state import load_run_state, save_run_state
 from fallkit.env.samplers.end_pose import EndPoseDraw
+from fallkit.env.samplers.initial_state import InitialStateStock
 from fallkit.env.samplers.replay import LevelReplay
 from fallkit.poses.end_pose_set import EndPoseSet
 from fallkit.robots.spec import RobotSpec
@@ -212,7 +213,7 @@ class FallEnv(EnvBase):
         """A fresh initial state and end pose for worlds `ids` (where `mask` [N] is true); False if none."""
         if not ids.numel():
             return False
-        qpos, qvel = self.initial_states.sample(ids.numel(), self._cpu_gen)
+        qpos, qvel = self.initial_stock.take(ids.numel(), self._cpu_gen)
         poses = self.end_pose_draw(qpos, qvel, self._gen)
         if self.level_replay is not None:
             qpos, qvel, poses = self.level_replay.restart(ids, qpos, qvel, poses, self._cpu_gen)
@@ -285,6 +286,8 @@ class FallEnv(EnvBase):
         self.initial_states = load("fallkit.samplers", env_cfg.samplers["initial_state"])(
             spec, **env_cfg.initial_state.model_dump()
         )
+        # training's restarts take a few states per step: drawn ahead, a quarter of the worlds at a time
+        self.initial_stock = InitialStateStock(self.initial_states, chunk=max(64, self.num_envs // 4))
         dist, self.disturbances = env_cfg.disturbances, None
         if dist.enabled:
             self.disturbances = load("fallkit.samplers", env_cfg.samplers["disturbances"])(

@@ -17,6 +17,7 @@ def save_run_state(env: EnvBase) -> dict:
     state = {name: getattr(env, name).clone() for name in _BUFFERS}
     state["sim"] = env.sim.state_dict()
     state["generators"] = (env._cpu_gen.get_state(), env._gen.get_state())
+    state["initial_stock"] = env.initial_stock.state()  # drawn ahead, not yet used
     state["randomization"] = env.randomization.state()
     if env.disturbances is not None:
         d = env.disturbances
@@ -39,6 +40,7 @@ def load_run_state(env: EnvBase, state: dict) -> None:
     env.sim.load_state_dict(state["sim"])
     env._cpu_gen.set_state(state["generators"][0])
     env._gen.set_state(state["generators"][1])
+    env.initial_stock.load(state.get("initial_stock"))  # a run saved before the stock: it starts empty
     if "randomization" in state:
         env.randomization.load(state["randomization"])
     if env.disturbances is not None and "disturbances" in state:
