@@ -10,6 +10,7 @@ root linear ±2.0 m/s, root angular ±0.5 rad/s, joints ±0.5 rad/s, per axis.
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import torch
 
@@ -47,10 +48,16 @@ class InitialStateSampler:
         return qpos, qvel
 
 
+class SamplesInitialStates(Protocol):
+    """What the registered initial-state sampler provides (`env.samplers.initial_state`, docs/env.md)."""
+
+    def sample(self, n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
 class InitialStateStock:
     """Initial states drawn ahead, in bulk, for training's restarts.
 
-    A training step restarts a few worlds at a time (about N / 150 of N: an episode is 150 steps), and each
+    A training step restarts a few worlds at a time (about 1 in 150: an episode is 150 steps), and each
     `sample` call costs its self-collision and ground checks whatever its size: 1.7 ms for 1 to 32 states,
     against 27-44 µs a state in batches of 64 and more (biped20, this project's CPU). So `take` hands out
     states drawn `chunk` at a time by any sampler with `sample(n, generator)` (a plugin's too). The states are
@@ -58,7 +65,7 @@ class InitialStateStock:
     resumed run restarts its worlds from the same states.
     """
 
-    def __init__(self, sampler, chunk: int):
+    def __init__(self, sampler: SamplesInitialStates, chunk: int):
         self.sampler, self.chunk = sampler, chunk
         self.qpos = self.qvel = None  # [k, nq], [k, nv] float64: drawn and not yet taken
 
