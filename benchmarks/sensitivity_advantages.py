@@ -25,7 +25,7 @@ import torch
 import yaml
 
 from fallkit.config import validate
-from fallkit.env.observations import actor_layout
+from fallkit.env.observations import actor_slices
 from fallkit.rl.trainer import Trainer
 
 
@@ -47,9 +47,7 @@ def main() -> None:
     if args.component not in spec.component_names:
         raise SystemExit(f"--component {args.component}: not a component of {spec.name}: {', '.join(spec.component_names)}")
     # the critic's observation starts with the actor's, noiseless: its sensitivity part is ln w per component
-    layout = actor_layout(spec, True, env.observes_gravity)
-    start = sum(size for name, size in layout[: [name for name, _ in layout].index("sensitivity")])
-    column = start + spec.component_names.index(args.component)
+    column = actor_slices(spec, True, env.observes_gravity)["sensitivity"].start + spec.component_names.index(args.component)
     advantages, terms, log_w = [], [], []
     for _ in range(args.batches):
         batch = trainer.collect()
