@@ -94,6 +94,10 @@ def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
                           prior_coef=0.0)  # fmt: skip
     assert composed().train.ppo.prior_coef == composed("train=quick").train.ppo.prior_coef == 0.03
     assert composed().train.ppo.value_per_term and composed("train=quick").train.ppo.value_per_term
+    # the orientation term's own λ is the default's, and the paper's one value has one λ
+    assert composed().train.ppo.term_lam == composed("train=quick").train.ppo.term_lam == {"orientation": 0.8}
+    assert paper.train.ppo.term_lam == {} and composed("train.ppo.value_per_term=false").train.ppo.term_lam == {}
+    assert composed("train.ppo.term_lam=null").train.ppo.term_lam == {}  # lam for every term
     assert not paper.env.observe_gravity and not paper.env.sensitivity_inputs.enabled
     assert paper.train.ppo == table_iii and (table_iii.num_minibatches, table_iii.epochs, table_iii.desired_kl) == (4, 5, 0.01)
     with pytest.raises(ConfigError, match="train.prior=seek blends by u"):

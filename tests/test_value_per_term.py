@@ -110,7 +110,7 @@ def test_a_terms_own_lambda_or_gamma_changes_its_heads_advantage_alone(biped, pe
         p.data.normal_(0.0, 0.5)
 
     def gae(data, **ppo):
-        cfg = PPOConfig(value_per_component=per_component, **ppo)
+        cfg = PPOConfig(value_per_component=per_component, **{"term_lam": None, **ppo})  # only the asked setting
         return PPO(actor, critic, cfg, rewards=env.rewards)._gae_per_term(data)
 
     mixed = batch.clone()
@@ -144,7 +144,13 @@ def test_a_terms_own_lambda_and_gamma_are_checked():
         per_head(["impact", "orientation"], PPOConfig(term_lam={"orientaton": 0.99}), "term_lam")
     with pytest.raises(ConfigError, match="term_gamma: orientaton is not a reward term"):
         per_head(["impact", "orientation"], PPOConfig(term_gamma={"orientaton": 0.995}), "term_gamma")
-    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam") is None
+    assert per_head(["impact", "orientation"], PPOConfig(term_lam=None), "term_lam") is None
+    # the default's λ for the orientation term, and nothing when a run has no orientation term
+    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam").tolist() == pytest.approx([0.95, 0.8])
+    assert per_head(["impact", "joints"], PPOConfig(), "term_lam") is None
+    with pytest.raises(ConfigError, match="orientation is not a reward term"):  # set by the user, it must exist
+        per_head(["impact", "joints"], PPOConfig(term_lam={"orientation": 0.9}), "term_lam")
+    assert PPOConfig(value_per_term=False).term_lam == {}  # one value, one λ: the default dropped
 
 
 def test_a_terms_own_lambda_and_gamma_from_the_command_line(tmp_path):
@@ -152,7 +158,7 @@ def test_a_terms_own_lambda_and_gamma_from_the_command_line(tmp_path):
 
     from fallkit.rl.trainer import Trainer
 
-    overrides = ("train.iterations=1", "+train.ppo.term_lam.orientation=0.99")
+    overrides = ("train.iterations=1", "train.ppo.term_lam.orientation=0.99")  # the default's key: no `+`
     overrides += ("+train.ppo.term_gamma.orientation=0.995",)
     trainer = Trainer(composed_config(*TINY, *overrides), tmp_path)
     names = trainer.ppo.term_names

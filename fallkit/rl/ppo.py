@@ -33,8 +33,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
      The env reports the impact term per component (RewardSum.columns); those columns are summed
      into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
-     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (`per_head`), e.g.
-     the orientation term, paid late, a longer credit horizon than the impact's.
+     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (`per_head`): by
+     default the orientation term, paid late and decided early, λ 0.8, half its advantage's spread.
   8. With `relabels` (train.ppo.relabel_sensitivity: a policy that observes its sensitivity weights;
      train.ppo.relabel_end_pose), the batch is copied under newly drawn weights, its impact repriced,
      and/or under other end poses, its tracking terms recomputed (fallkit.rl.relabel), GAE
@@ -60,6 +60,7 @@ from torchrl.objectives.value import GAE
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 from fallkit.config import FallkitConfig, PPOConfig
+from fallkit.config.train import DEFAULT_TERM_LAM
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
 from fallkit.errors import ConfigError
@@ -89,6 +90,8 @@ def per_head(head_terms: list[str], cfg: PPOConfig, option: str) -> torch.Tensor
     """A GAE setting of every value head [K] (`option`: "term_lam" or "term_gamma"), given the reward term
     of each head; None when every head uses the run's own (`lam` or `gamma`)."""
     own = getattr(cfg, option)
+    if option == "term_lam":  # the default's λ applies where its term is (reward.orientation=0 drops the term)
+        own = {t: v for t, v in own.items() if t in head_terms or DEFAULT_TERM_LAM.get(t) != v}
     if not own:
         return None
     default = getattr(cfg, option.removeprefix("term_"))
