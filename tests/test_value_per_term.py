@@ -59,7 +59,8 @@ def test_the_terms_advantages_sum_to_the_advantage_of_the_whole_reward(biped, sh
         "module.value.2.bias": value_net(heads).value[-1].bias.sum(0, keepdim=True),
     })  # fmt: skip
     by_term = batch.clone()
-    PPO(actor, heads, PPOConfig(), potential=potential, rewards=env.rewards)._gae_per_term(by_term)
+    one_lam = PPOConfig(term_lam=None)  # linear only with one λ for every head (the default's differs for orientation)
+    PPO(actor, heads, one_lam, potential=potential, rewards=env.rewards)._gae_per_term(by_term)
     with torch.no_grad():
         PPO(actor, whole, PPOConfig(value_per_term=False), potential=potential).gae(batch)
     assert by_term["value_target"].shape == (3, 30, k)

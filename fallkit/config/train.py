@@ -132,6 +132,14 @@ class PPOConfig(Section):
             )
         return self
 
+    def per_term(self, option: str, terms: list[str]) -> dict[str, float]:
+        """`term_lam` or `term_gamma` for a run with these reward terms: the default's λ only where its term is
+        (reward.orientation=0 drops the term); a term the user named is kept, for the caller to refuse."""
+        own = getattr(self, option)
+        if option == "term_lam":
+            return {t: v for t, v in own.items() if t in terms or DEFAULT_TERM_LAM.get(t) != v}
+        return dict(own)
+
     @field_validator("term_lam", "term_gamma", mode="before")
     @classmethod
     def _none_is_empty(cls, value: object) -> object:

@@ -60,7 +60,6 @@ from torchrl.objectives.value import GAE
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 from fallkit.config import FallkitConfig, PPOConfig
-from fallkit.config.train import DEFAULT_TERM_LAM
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
 from fallkit.errors import ConfigError
@@ -89,9 +88,7 @@ def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Te
 def per_head(head_terms: list[str], cfg: PPOConfig, option: str) -> torch.Tensor | None:
     """A GAE setting of every value head [K] (`option`: "term_lam" or "term_gamma"), given the reward term
     of each head; None when every head uses the run's own (`lam` or `gamma`)."""
-    own = getattr(cfg, option)
-    if option == "term_lam":  # the default's λ applies where its term is (reward.orientation=0 drops the term)
-        own = {t: v for t, v in own.items() if t in head_terms or DEFAULT_TERM_LAM.get(t) != v}
+    own = cfg.per_term(option, head_terms)
     if not own:
         return None
     default = getattr(cfg, option.removeprefix("term_"))
