@@ -96,7 +96,7 @@ def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
     assert composed().train.ppo.prior_coef == composed("train=quick").train.ppo.prior_coef == 0.03
     assert composed().train.ppo.value_per_term and composed("train=quick").train.ppo.value_per_term
     # the orientation term's own λ is the default's, and the paper's one value has one λ
-    assert composed().train.ppo.term_lam == composed("train=quick").train.ppo.term_lam == {"orientation": 0.8}
+    assert composed().train.ppo.term_lam == composed("train=quick").train.ppo.term_lam == {"orientation": 0.6}
     assert paper.train.ppo.term_lam == {} and composed("train.ppo.value_per_term=false").train.ppo.term_lam == {}
     assert composed("train.ppo.term_lam=null").train.ppo.term_lam == {}  # lam for every term
     assert not paper.env.observe_gravity and not paper.env.sensitivity_inputs.enabled

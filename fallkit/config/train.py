@@ -17,9 +17,9 @@ from fallkit.config.section import Section
 
 # The orientation term's own GAE λ in the default (with a value per term). Its advantage is the actor's
 # noisiest (std ~6 a step against ~2 for the impact's): paid at the landing, decided early in the
-# fall; λ 0.8 halves that spread, and paired on seeds 0-3 MROE and max impact were lower or equal
-# on every seed (docs/training.md). A dict so the per-term default reads as the option's own value.
-DEFAULT_TERM_LAM: dict[str, float] = {"orientation": 0.8}
+# fall; λ 0.8 halved that spread (MROE and max impact lower or equal on seeds 0-3 against 0.95), and
+# λ 0.6 cut it to ~2.6 with MROE lower than 0.8's on every seed 0-3 (docs/training.md). A dict so the per-term default reads as the option's own value.
+DEFAULT_TERM_LAM: dict[str, float] = {"orientation": 0.6}
 
 
 class PPOConfig(Section):
@@ -92,8 +92,8 @@ class PPOConfig(Section):
     term_lam: dict[str, float] = Field(
         default_factory=lambda: dict(DEFAULT_TERM_LAM),
         description="with value_per_term: a GAE λ of its own for some reward terms, the others keep `lam`. The "
-        "default gives the orientation term λ 0.8: paid late (blended in by u(t)) and decided early, its "
-        "advantage is the actor's noisiest, and the shorter λ trades a little bias for half its spread (measured "
+        "default gives the orientation term λ 0.6: paid late (blended in by u(t)) and decided early, its "
+        "advantage is the actor's noisiest, and the shorter λ trades a little bias for less than half its spread (measured "
         "in docs/training.md). Set one with `train.ppo.term_lam.orientation=0.9` (another term: "
         "`+train.ppo.term_lam.<term>=`); null = `lam` for every term. With one value for the whole return "
         "(value_per_term=false) the default is dropped: that critic has one λ",
