@@ -18,7 +18,8 @@ from fallkit.config.section import Section
 # The orientation term's own GAE λ in the default (with a value per term). Its advantage is the actor's
 # noisiest (std ~6 a step against ~2 for the impact's): paid at the landing, decided early in the
 # fall; λ 0.8 halved that spread (MROE and max impact lower or equal on seeds 0-3 against 0.95), and
-# λ 0.6 cut it to ~2.6 with MROE lower than 0.8's on every seed 0-3 (docs/training.md). A dict so the per-term default reads as the option's own value.
+# λ 0.6 cut it to ~2.6 with MROE lower than 0.8's on every seed 0-3 (docs/training.md). A dict so the
+# per-term default reads as the option's own value.
 DEFAULT_TERM_LAM: dict[str, float] = {"orientation": 0.6}
 
 

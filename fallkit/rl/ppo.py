@@ -34,7 +34,7 @@ One call of `PPO.update(batch)` is one iteration's learning:
      The env reports the impact term per component (RewardSum.columns); those columns are summed
      into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
      `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (`per_head`): by
-     default the orientation term, paid late and decided early, λ 0.6, under half its advantage's spread.
+     default the orientation term, paid late and decided early, a shorter λ (config.train.DEFAULT_TERM_LAM).
   8. With `relabels` (train.ppo.relabel_sensitivity: a policy that observes its sensitivity weights;
      train.ppo.relabel_end_pose), the batch is copied under newly drawn weights, its impact repriced,
      and/or under other end poses, its tracking terms recomputed (fallkit.rl.relabel), GAE
