@@ -24,7 +24,7 @@ from fallkit.config.reward import BUILTIN_TERMS, RewardConfig
 from fallkit.config.robot import RobotConfig
 from fallkit.config.section import Section
 from fallkit.config.sim import SimConfig
-from fallkit.config.train import LevelReplayConfig, PPOConfig, SelfImitationConfig, TrainConfig
+from fallkit.config.train import LevelReplayConfig, PPOConfig, SelfImitationConfig, TeachersConfig, TrainConfig
 from fallkit.errors import ConfigError
 
 __all__ = [
@@ -32,7 +32,7 @@ __all__ = [
     "EnvConfig", "EvalConfig", "FallkitConfig", "InitialStateConfig", "LevelReplayConfig", "Mode", "ObservationNoise",
     "PlayConfig", "PPOConfig", "PushTestConfig", "RenderConfig", "RewardConfig", "RobotConfig", "SelfImitationConfig",
     "SettleConfig",
-    "SimConfig", "TrainConfig", "defaults", "validate",
+    "SimConfig", "TeachersConfig", "TrainConfig", "defaults", "validate",
 ]  # fmt: skip
 
 Mode = Literal["train", "list", "poses", "eval", "render", "export", "sim2sim", "play", "warmup", "detect"]
@@ -101,6 +101,21 @@ class FallkitConfig(Section):
             raise ValueError(
                 "train.ppo.relabel_sensitivity prices the collected falls under other sensitivity weights, which "
                 "the policy must observe: set env.sensitivity_inputs.enabled=true (with low < high)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _teachers_need_drawn_weights(self) -> "FallkitConfig":
+        runs, inputs = self.train.teachers.runs, self.env.sensitivity_inputs
+        if runs and not (inputs.enabled and inputs.low < inputs.high):
+            raise ValueError(
+                "train.teachers: the policy imitates the teacher of the weight it draws, so it must draw and observe "
+                "its weights: set env.sensitivity_inputs.enabled=true (with low < high), or train.teachers.runs=[]"
+            )
+        if len(runs) == 1:
+            raise ValueError(
+                "train.teachers.runs has one run: teachers at two or more weights of one component are blended by "
+                "the drawn weight; to start from one trained policy use train.init_from=<run>"
             )
         return self
 

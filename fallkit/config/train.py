@@ -226,6 +226,26 @@ class SelfImitationConfig(Section):
     )
 
 
+class TeachersConfig(Section):
+    """Policies trained at fixed sensitivity weights that a policy with sensitivity inputs imitates at the
+    weights it draws (fallkit.rl.teachers; kickstarting, Schmitt et al. 2018; docs/sensitivity_inputs.md)."""
+
+    runs: list[str] = Field(
+        default_factory=list,
+        description="trained runs (run dirs or checkpoints) of this robot without sensitivity inputs, each weighting "
+        "one component at most other than this run's robot, two or more weights per such component (the robot's own "
+        "counts), e.g. the head at 1 and at 4; the run draws those components' weights (env.sensitivity_inputs."
+        "components=[head]; several: draw=one) and each sample imitates the mean actions of its drawn component's "
+        "teachers, blended linearly in ln w between the two nearest; [] = off",
+    )
+    coef: float = Field(
+        1.0,
+        gt=0,
+        description="α of the imitation term α·Σ_j (μ_j − μ̂_j)² added to PPO's loss (μ the student's mean action, "
+        "μ̂ the teachers' blend, in action units, over the collected samples); PPO's own terms keep learning beside it",
+    )
+
+
 class TrainConfig(Section):
     """Budget, networks, the policy's prior, logging and checkpoints of a training run."""
 
@@ -297,6 +317,7 @@ class TrainConfig(Section):
         "env.sensitivity_inputs) starting at zero weight; a new run otherwise (fallkit.rl.init_from). resume= "
         "continues a run instead",
     )
+    teachers: TeachersConfig = Field(default_factory=TeachersConfig)
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
     evaluate: bool = Field(True, description="evaluate the final policy into the run dir")

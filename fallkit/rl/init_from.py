@@ -34,8 +34,10 @@ from fallkit.robots.spec import RobotSpec
 
 log = logging.getLogger(__name__)
 
-# What the loaded weights' actions mean: these must be the loaded run's.
-_SAME_MEANING = ("train.prior", "train.fade_residual", "train.prior_power", "env.action_scale", "train.ppo.normalize_value")
+# What a loaded actor's outputs mean as actions (train.teachers checks these), and with the critic's value
+# scale what all the loaded weights mean (train.init_from): these must be the loaded run's.
+ACTION_MEANING = ("train.prior", "train.fade_residual", "train.prior_power", "env.action_scale")
+_SAME_MEANING = (*ACTION_MEANING, "train.ppo.normalize_value")
 
 
 @dataclass
@@ -62,14 +64,11 @@ def start_from(where: str, actor: nn.Module, critic: nn.Module, config: FallkitC
         raise ConfigError(f"{say} was trained on robot '{ckpt['robot']}', another model than this run's "
                           f"'{spec.name}': start from a policy of the same robot model")  # fmt: skip
     now = config.model_dump(mode="json")
-    for key in _SAME_MEANING:
-        theirs, ours = _get(saved, key), _get(now, key)
-        if theirs != ours:
-            raise ConfigError(f"{say} was trained with {key}={theirs}, this run has {ours}: set {key}={theirs}")
-    before, after = _options(saved), _options(now)
+    same_meaning(saved, now, say)
+    before, after = observation_options(saved), observation_options(now)
     columns = {}
     for name, net, layout in (("policy", actor, actor_layout), ("critic", critic, critic_layout)):
-        index = _column_map(layout(spec, *before), layout(spec, *after), f"{say}: the {name} observation")
+        index = column_map(layout(spec, *before), layout(spec, *after), f"{say}: the {name} observation")
         columns[name] = _load_net(net, ckpt["actor" if name == "policy" else "critic"], index, name, say)
     rate = float(ckpt["ppo"]["learning_rate"]) if "learning_rate" in ckpt.get("ppo", {}) else config.train.ppo.learning_rate
     log.info("networks start from %s (iteration %d); observation columns new to them, at zero weight: %d of the "
@@ -88,13 +87,23 @@ def fresh_statistics(norm: RunningNorm, columns: torch.Tensor, obs: torch.Tensor
     norm.var[columns] = x.var(0, unbiased=False)
 
 
-def _options(config: dict) -> tuple[bool, bool]:
+def same_meaning(saved: dict, now: dict, say: str, keys: tuple[str, ...] = _SAME_MEANING) -> None:
+    """Refuse, in one line, a loaded run (config `saved`, as its checkpoint stores it) whose weights mean
+    something else than this run's (`now`) under `keys`: another prior, fade, prior power, action scale or value
+    scale."""
+    for key in keys:
+        theirs, ours = _get(saved, key), _get(now, key)
+        if theirs != ours:
+            raise ConfigError(f"{say} was trained with {key}={theirs}, this run has {ours}: set {key}={theirs}")
+
+
+def observation_options(config: dict) -> tuple[bool, bool]:
     """The observation options of a config (as actor_layout takes them): sensitivity inputs, observed gravity."""
     env = config["env"]
     return bool(env.get("sensitivity_inputs", {}).get("enabled", False)), bool(env.get("observe_gravity", False))
 
 
-def _column_map(before: list[tuple[str, int]], after: list[tuple[str, int]], what: str) -> torch.Tensor:
+def column_map(before: list[tuple[str, int]], after: list[tuple[str, int]], what: str) -> torch.Tensor:
     """For each column of the loaded layout, its column in this run's."""
     starts, at = {}, 0
     for name, size in after:

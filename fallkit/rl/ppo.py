@@ -43,6 +43,10 @@ One call of `PPO.update(batch)` is one iteration's learning:
      policy's at the copy's observation, its advantage scaled by the truncated importance weight
      (`fallkit.rl.relabel.weigh_copy`); the KL stays on the collected samples, as with the mirror, which then
      mirrors both.
+  9. With `teachers` (train.teachers: a policy with sensitivity inputs and policies trained at fixed
+     weights of one component), each batch's samples get the teachers' mean actions blended by their
+     drawn weight (fallkit.rl.teachers), and the loss gains α·Σ_j (μ_j − μ̂_j)² over the collected
+     samples of each minibatch, logged as `teacher_loss`.
 
 With torch.distributed initialised (torchrun), gradients are averaged over ranks
 before each optimizer step, and the KL used for the learning rate is averaged too,
@@ -68,6 +72,7 @@ from fallkit.rl.optimizer import AdaptiveAdam
 from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel, weigh_copy
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
+from fallkit.rl.teachers import Teachers
 from fallkit.robots.spec import RobotSpec
 
 
@@ -146,6 +151,8 @@ class PPO:
         potential: OrientationPotential | None = None,
         rewards: RewardSum | None = None,
         relabels: list[SensitivityRelabel | EndPoseRelabel] = (),
+        teachers: Teachers | None = None,
+        teachers_coef: float = 1.0,
     ):
         if cfg.mirror and mirror is None:
             raise ValueError("PPO: train.ppo.mirror needs the robot's ObservationMirror (fallkit.env.mirror)")
@@ -157,6 +164,7 @@ class PPO:
         self.mirror = mirror if cfg.mirror else None
         self.potential = potential
         self.relabels = list(relabels)  # applied in turn to one copy of the batch
+        self.teachers, self.teachers_coef = teachers, teachers_coef
         # with value_per_term: what each value head learns (names for the logs), and which head each of
         # the env's reward columns adds to (None: one head per column)
         self.term_names, self.column_head = value_heads(rewards, cfg) if rewards is not None else ([], None)
@@ -203,6 +211,8 @@ class PPO:
         names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction", "prior_deviation"]
         if self.mirror is not None:
             names.append("mirror_loss")
+        if self.teachers is not None:
+            names.append("teacher_loss")
         sums = torch.zeros(len(names), device=flat.device)  # read once, after the last minibatch
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
         count = 0
@@ -218,6 +228,9 @@ class PPO:
                 deviation = self._prior_deviation(mb)
                 if cfg.prior_coef > 0:
                     loss = loss + cfg.prior_coef * deviation
+                if self.teachers is not None:  # the collected samples' mean actions toward their teachers' blend
+                    imitation = (self.actor_outputs.graph_loc[:mb] - flat["teacher_loc"][rows]).square().sum(-1).mean()
+                    loss = loss + self.teachers_coef * imitation
                 # KL of this minibatch between the collecting policy and the current one, from the
                 # loss's forward pass (the collected samples only, even with the mirror or the relabelled
                 # copy: only they were drawn from the collecting policy at their inputs), before this step
@@ -247,6 +260,8 @@ class PPO:
                 if self.mirror is not None:
                     outputs = self.actor_outputs.loc
                     figures.append(mirror_error(self.mirror, outputs[:unmirrored], outputs[unmirrored:]))
+                if self.teachers is not None:
+                    figures.append(imitation)
                 sums += torch.stack([f.detach().to(sums) for f in figures])
                 count += 1
         stats = dict(zip(names, sums / count)) | advantage_stats
@@ -285,6 +300,8 @@ class PPO:
         read = ["policy", "critic", "loc", "scale", keys.action, keys.sample_log_prob, keys.advantage, keys.value_target]
         flat = batch.select(*read, keys.value, strict=False).reshape(-1)
         flat_image = image.select(*read, keys.value, strict=False).reshape(-1) if image is not None else None
+        if self.teachers is not None:  # frozen teachers, fixed observations: their targets once per batch
+            flat.set("teacher_loc", self.teachers.targets(flat["policy"]))
         return flat, flat_image, advantage_stats
 
     def _minibatch(self, flat: TensorDict, flat_image: TensorDict | None, rows: torch.Tensor) -> tuple[TensorDict, int]:

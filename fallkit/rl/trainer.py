@@ -3,7 +3,8 @@
 `Trainer.run()` is the whole loop, one iteration per pass, read top to bottom:
   collect   num_steps policy steps in every env (FallEnv's step_and_maybe_reset:
             finished envs restart: a fresh initial state and end pose, or a stored one, train.level_replay)
-  learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr (+ train.self_imitation); then
+  learn     PPO.update: GAE, epochs x minibatches of ClipPPOLoss, adaptive lr (+ train.self_imitation,
+            + train.teachers' imitation term); then
             merge the batch into the running observation statistics (after the
             update, so the update saw the statistics the data was collected with)
   log       progress bar, TensorBoard scalars, metrics.csv
@@ -45,6 +46,7 @@ from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.self_imitation import make_self_imitation
 from fallkit.rl.shaping import OrientationPotential
+from fallkit.rl.teachers import Teachers
 from fallkit.robots import RobotSpec, robot_spec
 
 log = logging.getLogger(__name__)
@@ -137,7 +139,9 @@ class Trainer:
                 sensitivity.enabled, gravity,
             ))  # fmt: skip
         mirror = mirror.to(self.env.device) if mirror else None
-        return PPO(self.actor, self.critic, ppo, mirror, potential, self.env.rewards, relabels)
+        taught = config.train.teachers
+        teachers = Teachers(config, self.spec, self.env.device) if taught.runs else None
+        return PPO(self.actor, self.critic, ppo, mirror, potential, self.env.rewards, relabels, teachers, taught.coef)
 
     @property
     def main_rank(self) -> bool:
