@@ -25,7 +25,7 @@ import math
 import torch
 
 from fallkit.config import FallkitConfig
-from fallkit.env.observations import MIN_SENSITIVITY, actor_layout, actor_slices
+from fallkit.env.observations import actor_layout, actor_slices, sensitivity_input
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.rl.init_from import ACTION_MEANING, column_map, observation_options, same_meaning
 from fallkit.rl.policy import load_policy
@@ -72,12 +72,12 @@ class Teachers:
         self.nets, self.columns = nets, columns
         self.axes = _axes(spec, config, weights, runs)  # component -> [(teacher, weight)], by weight
         names = spec.component_names
-        self.own = torch.as_tensor([_observed(w) for w in spec.sensitivity], device=device)  # [C] ln w observed
+        self.own = sensitivity_input(torch.as_tensor(spec.sensitivity, dtype=torch.float32, device=device))  # [C]
         first = actor_slices(spec, *options)["sensitivity"].start
         self.weight_columns = first + torch.arange(len(names), device=device)
         self.axis_ids = [names.index(c) for c in self.axes]
         self.points = [(torch.tensor([k for k, _ in p], device=device),
-                        torch.tensor([_observed(w) for _, w in p], device=device)) for p in self.axes.values()]  # fmt: skip
+                        sensitivity_input(torch.tensor([w for _, w in p], device=device))) for p in self.axes.values()]  # fmt: skip
         log.info("train.teachers (α %g): %s", config.train.teachers.coef, "; ".join(
             f"{c} at {', '.join(f'{w:g} ({runs[k]})' for k, w in p)}" for c, p in self.axes.items()))  # fmt: skip
 
@@ -104,11 +104,6 @@ class Teachers:
             blend = torch.where(mine, share, blend)
             taken |= mine
         return (blend.unsqueeze(-1) * actions).sum(0).reshape(*obs.shape[:-1], -1)
-
-
-def _observed(weight: float) -> float:
-    """ln w as the policy observes a weight (fallkit.env.observations.sensitivity_input)."""
-    return math.log(max(weight, MIN_SENSITIVITY))
 
 
 def _axes(spec: RobotSpec, config: FallkitConfig, weights: list[list[float]], runs: list[str]) -> dict[str, list]:
