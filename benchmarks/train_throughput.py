@@ -36,7 +36,8 @@ from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.machine import subnormals_flushed
 from fallkit.rl.models import joint_prior, make_actor, resolve_precision
 from fallkit.rl.ppo import PPO
-from fallkit.rl.trainer import collect, critic_for
+from fallkit.rl.trainer import collect
+from fallkit.rl.value_heads import critic_for
 from fallkit.robots import robot_spec
 from fallkit.sim import make_sim, sim_options
 

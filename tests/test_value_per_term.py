@@ -73,7 +73,7 @@ def test_the_terms_advantages_sum_to_the_advantage_of_the_whole_reward(biped, sh
 def test_value_heads_per_term_or_per_component(biped, per_component):
     """value_per_term: the impact columns add up into one impact head (and GAE sees the term's reward);
     value_per_component: a head per column."""
-    from fallkit.rl.ppo import value_heads
+    from fallkit.rl.value_heads import value_heads
 
     env, batch = _rollout(biped)
     names, column_head = value_heads(env.rewards, PPOConfig(value_per_component=per_component))
@@ -99,7 +99,7 @@ def test_a_terms_own_lambda_or_gamma_changes_its_heads_advantage_alone(biped, pe
     """train.ppo.term_lam / term_gamma: the orientation head's advantage and value target are GAE with its
     λ or γ, every other head's with the run's — exactly what running each head alone with its setting gives
     (per component: the impact's heads all take the impact term's)."""
-    from fallkit.rl.ppo import value_heads
+    from fallkit.rl.value_heads import value_heads
 
     env, batch = _rollout(biped)
     actor = make_actor(batch["policy"].shape[-1], batch["action"].shape[-1], [16], 0.3)
@@ -131,7 +131,7 @@ def test_a_terms_own_lambda_or_gamma_changes_its_heads_advantage_alone(biped, pe
 
 def test_a_terms_own_lambda_and_gamma_are_checked():
     from fallkit.errors import ConfigError
-    from fallkit.rl.ppo import per_head
+    from fallkit.rl.value_heads import per_head
 
     with pytest.raises(ValueError, match=r"term_lam.orientation=1.5: a GAE λ lies in \[0, 1\]"):
         PPOConfig(term_lam={"orientation": 1.5})
@@ -216,7 +216,7 @@ def test_a_conditioned_critic_scales_each_components_impact_head_by_its_weight_s
 
     from fallkit.rl.models import ValueNet
     from fallkit.rl.policy import load_policy
-    from fallkit.rl.ppo import value_heads
+    from fallkit.rl.value_heads import value_heads
     from fallkit.rl.trainer import Trainer
 
     on = ["env.sensitivity_inputs.enabled=true", "train.ppo.value_per_component=true", "train.iterations=1"]

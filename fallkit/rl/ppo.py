@@ -32,8 +32,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      (with `normalize_value`, each in units of its own targets' statistics; the shaping of 5.
      joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
      The env reports the impact term per component (RewardSum.columns); those columns are summed
-     into the impact head, or each keeps a head of its own with `value_per_component` (`value_heads`).
-     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (`per_head`): by
+     into the impact head, or each keeps a head of its own with `value_per_component`.
+     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (fallkit.rl.value_heads): by
      default the orientation term, paid late and decided early, a shorter λ (config.train.DEFAULT_TERM_LAM).
   8. With `relabels` (train.ppo.relabel_sensitivity: a policy that observes its sensitivity weights;
      train.ppo.relabel_end_pose), the batch is copied under newly drawn weights, its impact repriced,
@@ -63,58 +63,22 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
-from fallkit.config import FallkitConfig, PPOConfig
+from fallkit.config import PPOConfig
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
-from fallkit.errors import ConfigError
-from fallkit.rl.models import GaussianPolicyNet, impact_weight_columns, policy_net, value_net
+from fallkit.rl.models import GaussianPolicyNet, policy_net, value_net
 from fallkit.rl.optimizer import AdaptiveAdam
 from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel, weigh_copy
 from fallkit.rl.shaping import SHAPED_REWARD, OrientationPotential
 from fallkit.rl.teachers import Teachers
-from fallkit.robots.spec import RobotSpec
+from fallkit.rl.value_heads import per_head, value_heads
 
 
 def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """Mean over the batch of KL(old ‖ new) for diagonal Gaussians."""
     kl = torch.log(scale / scale_old) + (scale_old.square() + (loc_old - loc).square()) / (2.0 * scale.square()) - 0.5
     return kl.sum(-1).mean()
-
-
-def value_heads(rewards: RewardSum, cfg: PPOConfig) -> tuple[list[str], torch.Tensor | None]:
-    """The value heads of a decomposed critic: one per reward term (the impact per component's columns
-    summed into the impact head: `column_head`), or one per reward column with `value_per_component`."""
-    if cfg.value_per_component:
-        return list(rewards.columns), None
-    return list(rewards.names), rewards.column_term
-
-
-def per_head(head_terms: list[str], cfg: PPOConfig, option: str) -> torch.Tensor | None:
-    """A GAE setting of every value head [K] (`option`: "term_lam" or "term_gamma"), given the reward term
-    of each head; None when every head uses the run's own (`lam` or `gamma`)."""
-    own = cfg.per_term(option, head_terms)
-    if not own:
-        return None
-    default = getattr(cfg, option.removeprefix("term_"))
-    unknown = sorted(set(own) - set(head_terms))
-    if unknown:
-        raise ConfigError(
-            f"train.ppo.{option}: {', '.join(unknown)} is not a reward term of this run; "
-            f"the terms: {', '.join(sorted(set(head_terms)))}"
-        )
-    return torch.tensor([own.get(term, default) for term in head_terms])
-
-
-def critic_heads(config: FallkitConfig, spec: RobotSpec, rewards: RewardSum) -> tuple[list[str], list[int] | None]:
-    """The critic's value heads as training builds them: their names (one per reward term or column with
-    value_per_term, else one) and, for a critic that observes the sensitivity weights, each head's ln w_c
-    column (ValueNet.weight_columns; None when no head is scaled)."""
-    ppo = config.train.ppo
-    heads = value_heads(rewards, ppo)[0] if ppo.value_per_term else ["value"]
-    if not (ppo.value_per_component and config.env.sensitivity_inputs.enabled):
-        return heads, None
-    return heads, impact_weight_columns(spec, heads, config.env.observe_gravity)
 
 
 def mirror_error(mirror: ObservationMirror, loc: torch.Tensor, mirrored_loc: torch.Tensor) -> torch.Tensor:
@@ -208,12 +172,8 @@ class PPO:
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
         n = flat.shape[0]
         mb = n // cfg.num_minibatches
-        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction", "prior_deviation"]
-        if self.mirror is not None:
-            names.append("mirror_loss")
-        if self.teachers is not None:
-            names.append("teacher_loss")
-        sums = torch.zeros(len(names), device=flat.device)  # read once, after the last minibatch
+        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction"]  # + the aids' (below)
+        sums = 0.0  # read once, after the last minibatch
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
         count = 0
         # every epoch's shuffle in one copy to the device (a copy waits for the device's queue)
@@ -225,12 +185,8 @@ class PPO:
                 old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
                 out = self.loss(data)
                 loss, loss_critic = _total_loss(out, critic_net)
-                deviation = self._prior_deviation(mb)
-                if cfg.prior_coef > 0:
-                    loss = loss + cfg.prior_coef * deviation
-                if self.teachers is not None:  # the collected samples' mean actions toward their teachers' blend
-                    imitation = (self.actor_outputs.graph_loc[:mb] - flat["teacher_loc"][rows]).square().sum(-1).mean()
-                    loss = loss + self.teachers_coef * imitation
+                aid_loss, aids = self._learning_aids(flat, rows, mb, unmirrored)
+                loss = loss + aid_loss
                 # KL of this minibatch between the collecting policy and the current one, from the
                 # loss's forward pass (the collected samples only, even with the mirror or the relabelled
                 # copy: only they were drawn from the collecting policy at their inputs), before this step
@@ -255,18 +211,32 @@ class PPO:
                     out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
                     kl,
                     out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
-                    deviation,
+                    *aids.values(),
                 ]
-                if self.mirror is not None:
-                    outputs = self.actor_outputs.loc
-                    figures.append(mirror_error(self.mirror, outputs[:unmirrored], outputs[unmirrored:]))
-                if self.teachers is not None:
-                    figures.append(imitation)
-                sums += torch.stack([f.detach().to(sums) for f in figures])
+                sums = sums + torch.stack([f.detach().to(flat.device, torch.float32) for f in figures])
                 count += 1
-        stats = dict(zip(names, sums / count)) | advantage_stats
+        stats = dict(zip(names + list(aids), sums / count)) | advantage_stats
         stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms / count
         return stats | self._state_stats(policy_net(self.actor), critic_net)
+
+    def _learning_aids(
+        self, flat: TensorDict, rows: torch.Tensor, mb: int, unmirrored: int
+    ) -> tuple[torch.Tensor | float, dict[str, torch.Tensor]]:
+        """The loss terms beside PPO's own for one minibatch (its collected samples are the loss's first `mb`
+        inputs, the mirror image starts at `unmirrored`), and what each logs: train.ppo.prior_coef's pull toward
+        the prior (`prior_deviation`, logged at β 0 too), the mirror's asymmetry (`mirror_loss`, logged only)
+        and train.teachers' imitation of the teachers' blend (`teacher_loss`)."""
+        deviation = self._prior_deviation(mb)
+        loss = self.cfg.prior_coef * deviation if self.cfg.prior_coef > 0 else 0.0
+        logged = {"prior_deviation": deviation}
+        if self.mirror is not None:
+            outputs = self.actor_outputs.loc
+            logged["mirror_loss"] = mirror_error(self.mirror, outputs[:unmirrored], outputs[unmirrored:])
+        if self.teachers is not None:
+            imitation = (self.actor_outputs.graph_loc[:mb] - flat["teacher_loc"][rows]).square().sum(-1).mean()
+            loss = loss + self.teachers_coef * imitation
+            logged["teacher_loss"] = imitation
+        return loss, logged
 
     def _prior_deviation(self, rows: int) -> torch.Tensor:
         """Σ_j d_j² of the learned deviation d = mean − prior, averaged over the loss's first `rows` inputs (the

@@ -40,7 +40,7 @@ def make_self_imitation(
     config: FallkitConfig, actor, critic, rewards: RewardSum, heads: list[str], num_envs: int, max_steps: int
 ) -> SelfImitation | None:
     """The run's self-imitation (None when train.self_imitation.steps is 0), its `term` checked either way:
-    the reward columns and the value head of a term (`heads`: the critic's, fallkit.rl.ppo.critic_heads)."""
+    the reward columns and the value head of a term (`heads`: the critic's, fallkit.rl.value_heads.critic_heads)."""
     cfg, ppo = config.train.self_imitation, config.train.ppo
     columns = head = None
     if cfg.term != "return":

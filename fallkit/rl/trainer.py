@@ -39,15 +39,16 @@ from fallkit.machine import core_share, running_processes, subnormals_flushed
 from fallkit.rl.checkpoint import checkpoint_run_dir, load_checkpoint, run_checkpoints, save_checkpoint, shape_mismatch
 from fallkit.rl.exploration import CorrelatedNoise
 from fallkit.rl.init_from import fresh_statistics, start_from
-from fallkit.rl.models import joint_prior, make_actor, make_critic, policy_net, resolve_precision, value_net
+from fallkit.rl.models import joint_prior, make_actor, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
-from fallkit.rl.ppo import PPO, critic_heads
+from fallkit.rl.ppo import PPO
 from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.self_imitation import make_self_imitation
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.rl.teachers import Teachers
-from fallkit.robots import RobotSpec, robot_spec
+from fallkit.rl.value_heads import critic_for
+from fallkit.robots import robot_spec
 
 log = logging.getLogger(__name__)
 
@@ -326,13 +327,6 @@ class Trainer:
         if distributed():
             _check_ranks_in_sync(self.actor)
         return last
-
-
-def critic_for(config: FallkitConfig, spec: RobotSpec, rewards, obs_dim: int, precision: str) -> tuple[torch.nn.Module, list[str]]:
-    """The critic a run builds from its config, and its heads' names: its layout read off the config in one place."""
-    tc, (heads, weight_columns) = config.train, critic_heads(config, spec, rewards)
-    args = (tc.critic_hidden, tc.ppo.normalize_value, precision, len(heads), weight_columns, tc.critic_layer_norm)
-    return make_critic(obs_dim, *args), heads
 
 
 def collect(
