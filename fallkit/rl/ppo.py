@@ -33,8 +33,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
      joins the orientation head's reward). `advantage_std/<term>` logs each term's spread.
      The env reports the impact term per component (RewardSum.columns); those columns are summed
      into the impact head, or each keeps a head of its own with `value_per_component`.
-     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own (fallkit.rl.value_heads): by
-     default the orientation term, paid late and decided early, a shorter λ (config.train.DEFAULT_TERM_LAM).
+     `term_lam` and `term_gamma` give some terms a GAE λ or a discount of their own
+     (fallkit.rl.value_heads): by default the orientation term, paid late and decided early, a shorter λ (config.train.DEFAULT_TERM_LAM).
   8. With `relabels` (train.ppo.relabel_sensitivity: a policy that observes its sensitivity weights;
      train.ppo.relabel_end_pose), the batch is copied under newly drawn weights, its impact repriced,
      and/or under other end poses, its tracking terms recomputed (fallkit.rl.relabel), GAE
@@ -44,7 +44,7 @@ One call of `PPO.update(batch)` is one iteration's learning:
      (`fallkit.rl.relabel.weigh_copy`); the KL stays on the collected samples, as with the mirror, which then
      mirrors both.
   9. With `teachers` (train.teachers: a policy with sensitivity inputs and policies trained at fixed
-     weights of one component), each batch's samples get the teachers' mean actions blended by their
+     weights, each off the robot's in one component), each batch's samples get the teachers' mean actions blended by their
      drawn weight (fallkit.rl.teachers), and the loss gains α·Σ_j (μ_j − μ̂_j)² over the collected
      samples of each minibatch, logged as `teacher_loss`.
 
