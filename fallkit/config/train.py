@@ -242,7 +242,8 @@ class TeachersConfig(Section):
         1.0,
         gt=0,
         description="α of the imitation term α·Σ_j (μ_j − μ̂_j)² added to PPO's loss (μ the student's mean action, "
-        "μ̂ the teachers' blend, in action units, over the collected samples); PPO's own terms keep learning beside it",
+        "μ̂ the teachers' blend, in action units, over the collected samples); PPO's own terms keep learning beside it. "
+        "With two axes (draw=one) 3 read each as far as one axis alone does (docs/sensitivity_inputs.md)",
     )
 
 
