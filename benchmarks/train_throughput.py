@@ -13,7 +13,7 @@ and the ratios: iteration / (simulation + update) (CPU target <= 1.3), collectio
 (`collect_over_sim`, GPU target <= 1.4) and the update's share of an iteration (`update_share`,
 GPU target <= 0.25), with env steps per second. On a GPU every phase ends on a device sync.
 
-    python benchmarks/train_throughput.py [--envs 256] [--steps 24] [--hidden 256] [--iterations 3] [--precision bfloat16]
+    python benchmarks/train_throughput.py [--envs 1024] [--steps 24] [--hidden 256] [--iterations 3] [--precision bfloat16]
     python benchmarks/train_throughput.py --backend warp --device cuda:0 --envs 4096 16384   # issue 15
 """
 
@@ -198,7 +198,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
     p.add_argument("--device", default="cuda:0", help="warp device (cuda:N, or cpu to try it here)")
-    p.add_argument("--envs", type=int, nargs="+", default=None, help="world counts (default: 256; warp 4096 16384)")
+    p.add_argument("--envs", type=int, nargs="+", default=None, help="world counts (default: 1024, train=quick's; warp 4096 16384)")
     p.add_argument("--steps", type=int, default=24)
     p.add_argument("--hidden", type=int, default=None, help="width of the 3 layers (default: 256; warp 512)")
     p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
@@ -209,7 +209,7 @@ def main() -> None:
                         "products, CUDA only); builds no simulator, so compiles no Warp kernel")  # fmt: skip
     args = p.parse_args()
     warp = args.backend == "warp"
-    args.envs = args.envs or ([4096, 16384] if warp else [256])
+    args.envs = args.envs or ([4096, 16384] if warp else [1024])  # train=quick's on the CPU
     args.hidden = args.hidden or (512 if warp else 256)
     if args.update_precisions:
         if "tf32" in args.update_precisions and not args.device.startswith("cuda"):

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up (if needed), then the main job: a short training of biped20 on this machine's CPU
-# (train=quick: 256 envs, a 15-minute budget), which ends by evaluating its policy against the
+# (train=quick: 1024 envs, a 15-minute budget), which ends by evaluating its policy against the
 # three standard fall strategies (zero torque, damping, freeze) on falls it never trained on;
 # then a video of those falls side by side. Extra arguments are Hydra overrides for the
 # training, e.g. `bash scripts/main.sh train.max_minutes=5`.

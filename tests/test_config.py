@@ -81,7 +81,12 @@ def test_presets_only_write_values_that_differ_from_the_defaults(option):
 
 def test_presets_compose_and_change_what_they_say():
     quick = composed("train=quick")
-    assert quick.sim.num_envs == 256 and quick.train.max_minutes == 15 and quick.train.actor_hidden == [256, 256, 256]
+    assert quick.sim.num_envs == 1024 and quick.train.max_minutes == 15 and quick.train.actor_hidden == [256, 256, 256]
+    assert quick.train.ppo.num_minibatches == 16  # the 1536-sample minibatch of 256 worlds, 4x as many
+    with pytest.raises(ConfigError, match=r"num_minibatches=16 leaves fewer than 2 samples per minibatch in a batch "
+                       r"of 24 \(sim.num_envs=1 × train.num_steps=24\): lower train.ppo.num_minibatches"):
+        composed("train=quick", "sim.num_envs=1")
+    assert composed("train=quick", "sim.num_envs=2").sim.num_envs == 2  # 48 samples: 3 per minibatch
     warp = composed("sim=warp")
     assert warp.sim.backend == "warp" and warp.sim.device == "auto" and warp.sim.threads == SimConfig().threads
 
@@ -96,7 +101,7 @@ def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
     assert composed().train.ppo.prior_coef == composed("train=quick").train.ppo.prior_coef == 0.03
     assert composed().train.ppo.value_per_term and composed("train=quick").train.ppo.value_per_term
     # the orientation term's own λ is the default's, and the paper's one value has one λ
-    assert composed().train.ppo.term_lam == composed("train=quick").train.ppo.term_lam == {"orientation": 0.6}
+    assert composed().train.ppo.term_lam == composed("train=quick").train.ppo.term_lam == {"orientation": 0.4}
     assert paper.train.ppo.term_lam == {} and composed("train.ppo.value_per_term=false").train.ppo.term_lam == {}
     assert composed("train.ppo.term_lam=null").train.ppo.term_lam == {}  # lam for every term
     assert not paper.env.observe_gravity and not paper.env.sensitivity_inputs.enabled

@@ -147,7 +147,7 @@ def test_a_terms_own_lambda_and_gamma_are_checked():
         per_head(["impact", "orientation"], PPOConfig(term_gamma={"orientaton": 0.995}), "term_gamma")
     assert per_head(["impact", "orientation"], PPOConfig(term_lam=None), "term_lam") is None
     # the default's λ for the orientation term, and nothing when a run has no orientation term
-    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam").tolist() == pytest.approx([0.95, 0.6])
+    assert per_head(["impact", "orientation"], PPOConfig(), "term_lam").tolist() == pytest.approx([0.95, 0.4])
     assert per_head(["impact", "joints"], PPOConfig(), "term_lam") is None
     with pytest.raises(ConfigError, match="orientation is not a reward term"):  # set by the user, it must exist
         per_head(["impact", "joints"], PPOConfig(term_lam={"orientation": 0.9}), "term_lam")

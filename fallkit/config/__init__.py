@@ -130,6 +130,18 @@ class FallkitConfig(Section):
         return self
 
     @model_validator(mode="after")
+    def _minibatches_fit_the_batch(self) -> "FallkitConfig":
+        # an empty minibatch would fail deep inside the loss; train=quick asks for 16 of them
+        samples = self.sim.num_envs * self.train.num_steps
+        if self.mode == "train" and samples < 2 * self.train.ppo.num_minibatches:
+            raise ValueError(
+                f"train.ppo.num_minibatches={self.train.ppo.num_minibatches} leaves fewer than 2 samples per "
+                f"minibatch in a batch of {samples} (sim.num_envs={self.sim.num_envs} × train.num_steps="
+                f"{self.train.num_steps}): lower train.ppo.num_minibatches or raise sim.num_envs"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _dynamics_randomised_on_mujoco(self) -> "FallkitConfig":
         r = self.env.randomization
         on = [n for n in ("mass", "joint_damping", "armature") if getattr(r, n).enabled]
