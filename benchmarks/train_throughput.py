@@ -42,15 +42,16 @@ from fallkit.robots import robot_spec
 from fallkit.sim import make_sim, sim_options
 
 
-def config_for(args, envs: int):
-    """train=quick on the CPU backend; train=default (Table III networks) with sim=warp."""
+def config_for(args, envs: int | None):
+    """train=quick on the CPU backend; train=default (Table III networks) with sim=warp; envs None:
+    the preset's own world count."""
     register_configs()
     preset = ["train=quick"] if args.backend == "mujoco" else ["train=default", "sim=warp", f"sim.device={args.device}"]
     hidden = ",".join([str(args.hidden)] * 3)
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
         cfg = compose(
             config_name="config",
-            overrides=[*preset, f"sim.num_envs={envs}", f"train.num_steps={args.steps}",
+            overrides=[*preset, *([f"sim.num_envs={envs}"] if envs else []), f"train.num_steps={args.steps}",
                        f"train.actor_hidden=[{hidden}]", f"train.critic_hidden=[{hidden}]", f"train.precision={args.precision}"],
         )  # fmt: skip
     raw = OmegaConf.to_container(cfg, resolve=False)
@@ -198,7 +199,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
     p.add_argument("--device", default="cuda:0", help="warp device (cuda:N, or cpu to try it here)")
-    p.add_argument("--envs", type=int, nargs="+", default=None, help="world counts (default: 1024, train=quick's; warp 4096 16384)")
+    p.add_argument("--envs", type=int, nargs="+", default=None, help="world counts (default: train=quick's; warp 4096 16384)")
     p.add_argument("--steps", type=int, default=24)
     p.add_argument("--hidden", type=int, default=None, help="width of the 3 layers (default: 256; warp 512)")
     p.add_argument("--iterations", type=int, default=3, help="timed iterations (after one warm-up)")
@@ -209,8 +210,8 @@ def main() -> None:
                         "products, CUDA only); builds no simulator, so compiles no Warp kernel")  # fmt: skip
     args = p.parse_args()
     warp = args.backend == "warp"
-    args.envs = args.envs or ([4096, 16384] if warp else [1024])  # train=quick's on the CPU
     args.hidden = args.hidden or (512 if warp else 256)
+    args.envs = args.envs or ([4096, 16384] if warp else [config_for(args, None).sim.num_envs])  # train=quick's
     if args.update_precisions:
         if "tf32" in args.update_precisions and not args.device.startswith("cuda"):
             p.error("--update-only tf32 needs a CUDA --device (TensorFloat-32 is an NVIDIA GPU format)")
