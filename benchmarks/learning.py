@@ -32,15 +32,17 @@ from pathlib import Path
 import yaml
 from fallkit_cli import fallkit
 
+from fallkit.config import PPOConfig
 from fallkit.eval.report import RATIOS, ratios
 from fallkit.eval.rollout import SEEK
 
 
 def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
     """One `python -m fallkit` training run (ending in its evaluation); its eval.json and log sizes."""
-    # on a GPU the update is cheap per sample: keep the 4 minibatches of the GPU figures measured so far
-    # (train=quick's 16 keep a 2-core CPU's 1536-sample minibatch at 1024 worlds)
-    warp = ["sim=warp", f"sim.num_envs={args.envs or 4096}", "train.ppo.num_minibatches=4"]
+    # on a GPU the update is cheap per sample: keep train=default's minibatch count, that of the GPU
+    # figures measured so far (train=quick's 16 keep a 2-core CPU's 1536-sample minibatch at 1024 worlds)
+    minibatches = PPOConfig().num_minibatches
+    warp = ["sim=warp", f"sim.num_envs={args.envs or 4096}", f"train.ppo.num_minibatches={minibatches}"]
     backend = warp if args.backend == "warp" else []
     if args.backend == "mujoco" and args.envs is not None:
         backend.append(f"sim.num_envs={args.envs}")
