@@ -1,10 +1,10 @@
 """What a training run learns in a wall-clock budget, judged by the paper's metrics (issue 13).
 
-Trains biped20 with `train=quick` (or `sim=warp` on a GPU) for `--minutes` per seed, exactly
-as the README's main job does (`python -m fallkit …`, which ends by evaluating the final
-policy: 256 falls of the test split, eval seed, no noise or disturbances, paired against the
-standard strategies on the same initial states and end poses), then reads each run's
-eval.json and reports, per metric, the policy's mean over the best standard strategy's:
+Trains biped20 with `train=quick` (with `--backend warp`: `sim=warp train=quick_gpu`, its GPU
+sizing) for `--minutes` per seed, exactly as the README's main job does (`python -m fallkit …`,
+which ends by evaluating the final policy: 256 falls of the test split, eval seed, no noise or
+disturbances, paired against the standard strategies on the same initial states and end poses),
+then reads each run's eval.json and reports, per metric, the policy's mean over the best standard strategy's:
 
   max_impact_ratio        mean max impact force            (lower is better; target <= 0.85)
   mje_ratio               mean joint tracking error        (target <= 0.2)
@@ -32,23 +32,19 @@ from pathlib import Path
 import yaml
 from fallkit_cli import fallkit
 
-from fallkit.config import PPOConfig
 from fallkit.eval.report import RATIOS, ratios
 from fallkit.eval.rollout import SEEK
 
 
 def train_and_evaluate(args, seed: int, run_dir: Path) -> dict:
     """One `python -m fallkit` training run (ending in its evaluation); its eval.json and log sizes."""
-    # on a GPU the update is cheap per sample: keep train=default's minibatch count, that of the GPU
-    # figures measured so far (train=quick's 16 keep a 2-core CPU's 1536-sample minibatch at 1024 worlds)
-    minibatches = PPOConfig().num_minibatches
-    warp = ["sim=warp", f"sim.num_envs={args.envs or 4096}", f"train.ppo.num_minibatches={minibatches}"]
-    backend = warp if args.backend == "warp" else []
-    if args.backend == "mujoco" and args.envs is not None:
+    # train=quick_gpu is train=quick sized for one GPU (4096 worlds in 4 big minibatches)
+    backend = ["sim=warp", "train=quick_gpu"] if args.backend == "warp" else ["train=quick"]
+    if args.envs is not None:
         backend.append(f"sim.num_envs={args.envs}")
     started = time.monotonic()
-    fallkit("robot=biped20", "train=quick", f"train.max_minutes={args.minutes}", f"seed={seed}",
-            f"eval.trials={args.trials}", f"hydra.run.dir={run_dir}", *backend, *args.overrides)  # fmt: skip
+    fallkit("robot=biped20", *backend, f"train.max_minutes={args.minutes}", f"seed={seed}",
+            f"eval.trials={args.trials}", f"hydra.run.dir={run_dir}", *args.overrides)  # fmt: skip
     wall = time.monotonic() - started
     rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
     resolved = yaml.safe_load((run_dir / "resolved_config.yaml").read_text())
@@ -82,7 +78,7 @@ def main() -> None:
     p.add_argument("--backend", choices=("mujoco", "warp"), default="mujoco")
     p.add_argument("--seeds", type=int, default=1, help="how many seeds, one training each")
     p.add_argument("--first-seed", type=int, default=0, help="seeds first … first + n − 1 (a second seed of a row)")
-    p.add_argument("--envs", type=int, default=None, help="sim.num_envs (default: train=quick's 1024; warp 4096)")
+    p.add_argument("--envs", type=int, default=None, help="sim.num_envs (default: the preset's, 1024 or 4096 on warp)")
     p.add_argument("--trials", type=int, default=256, help="evaluation falls per strategy")
     p.add_argument("--out", default="runs/learning", help="run directories go here")
     p.add_argument("overrides", nargs="*", help="Hydra overrides for the training, after --")

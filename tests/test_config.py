@@ -89,6 +89,11 @@ def test_presets_compose_and_change_what_they_say():
     assert composed("train=quick", "sim.num_envs=2").sim.num_envs == 2  # 48 samples: 3 per minibatch
     warp = composed("sim=warp")
     assert warp.sim.backend == "warp" and warp.sim.device == "auto" and warp.sim.threads == SimConfig().threads
+    # train=quick on a GPU: quick's networks and std, the GPU's 4096 worlds in 4 big minibatches
+    gpu = composed("sim=warp", "train=quick_gpu")
+    assert gpu.sim.backend == "warp" and (gpu.sim.num_envs, gpu.train.ppo.num_minibatches) == (4096, 4)
+    assert gpu.train.actor_hidden == quick.train.actor_hidden and gpu.train.init_noise_std == quick.train.init_noise_std
+    assert gpu.train.max_minutes == 10 and gpu.train.ppo.term_lam == quick.train.ppo.term_lam
 
 
 def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
