@@ -94,6 +94,10 @@ def test_presets_compose_and_change_what_they_say():
     assert gpu.sim.backend == "warp" and (gpu.sim.num_envs, gpu.train.ppo.num_minibatches) == (4096, 4)
     assert gpu.train.actor_hidden == quick.train.actor_hidden and gpu.train.init_noise_std == quick.train.init_noise_std
     assert gpu.train.max_minutes == 10 and gpu.train.ppo.term_lam == quick.train.ppo.term_lam
+    # train=quick for an hour on the same CPU: only the budget and 4 bigger minibatches differ
+    hour = composed("train=hour")
+    assert (hour.sim.num_envs, hour.train.ppo.num_minibatches, hour.train.max_minutes) == (1024, 4, 60)
+    assert hour.train.actor_hidden == quick.train.actor_hidden and hour.train.ppo.term_lam == quick.train.ppo.term_lam
 
 
 def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
