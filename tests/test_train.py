@@ -354,7 +354,9 @@ def test_the_update_and_the_logged_figures_read_nothing_back_per_minibatch(tmp_p
     stats = trainer.iterate()
     assert all(isinstance(v, float) for v in stats.values())
     assert stats["episode/count"] > 0 and stats["episode/max_impact_force"] >= 0.0
-    assert {"kl", "learning_rate", "reward", "reward_terms/impact", "collect_s", "update_s"} <= stats.keys()
+    assert {"kl", "learning_rate", "learning_rate_mean", "reward", "reward_terms/impact", "collect_s", "update_s"} <= stats.keys()
+    lr = trainer.config.train.ppo
+    assert lr.lr_min <= stats["learning_rate_mean"] <= lr.lr_max
 
 
 def test_resume_from_an_optimizer_saved_with_a_float_rate(tmp_path):

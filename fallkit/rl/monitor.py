@@ -91,7 +91,7 @@ class Progress:
             steps_s=f"{stats['env_steps_per_s']:.0f}",
             reward=f"{stats['reward']:.3f}",
             impact_N=_whole(stats.get("episode/max_impact_force", float("nan"))),
-            lr=f"{stats['learning_rate']:.1e}",
+            lr=f"{stats['learning_rate_mean']:.1e}",  # what the steps were taken at; the last one's can sit at lr_min
             **left,
             refresh=False,
         )

@@ -172,7 +172,10 @@ class PPO:
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
         n = flat.shape[0]
         mb = n // cfg.num_minibatches
-        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction"]  # + the aids' (below)
+        # + the aids' (below); learning_rate_mean: the actor's rate averaged over the update's steps. The rule
+        # moves it at every minibatch, so `learning_rate` (the rate after the last one) can sit at lr_min while
+        # most steps were taken at several times that
+        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction", "learning_rate_mean"]
         sums = 0.0  # read once, after the last minibatch
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
         count = 0
@@ -211,6 +214,7 @@ class PPO:
                     out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
                     kl,
                     out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
+                    self.optimizer.learning_rate,  # the rate this step was taken at
                     *aids.values(),
                 ]
                 sums = sums + torch.stack([f.detach().to(flat.device, torch.float32) for f in figures])
