@@ -87,6 +87,9 @@ def test_presets_compose_and_change_what_they_say():
                        r"of 24 \(sim.num_envs=1 × train.num_steps=24\): lower train.ppo.num_minibatches"):
         composed("train=quick", "sim.num_envs=1")
     assert composed("train=quick", "sim.num_envs=2").sim.num_envs == 2  # 48 samples: 3 per minibatch
+    with pytest.raises(ConfigError, match=r"train.ppo.late_num_minibatches=32 leaves fewer than 2 samples per "
+                       r"minibatch in a batch of 48 .* lower train.ppo.late_num_minibatches or raise sim.num_envs"):
+        composed("train=quick", "sim.num_envs=2", "train.ppo.late_num_minibatches=32")
     warp = composed("sim=warp")
     assert warp.sim.backend == "warp" and warp.sim.device == "auto" and warp.sim.threads == SimConfig().threads
     # train=quick on a GPU: quick's networks and std, the GPU's 4096 worlds in 4 big minibatches

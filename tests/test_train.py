@@ -359,6 +359,24 @@ def test_the_update_and_the_logged_figures_read_nothing_back_per_minibatch(tmp_p
     assert lr.lr_min <= stats["learning_rate_mean"] <= lr.lr_max
 
 
+def test_the_minibatch_count_switches_at_its_env_steps(tmp_path):
+    """train.ppo.late_num_minibatches: the updates before late_from_env_steps take num_minibatches steps an
+    epoch, those after it the late count, each logged; the optimizer counts every step."""
+    import csv
+
+    from fallkit.rl.trainer import Trainer
+
+    # 8 envs x 4 steps = 32 env steps an iteration: iterations 0-1 in 2 minibatches, 2-3 in 4
+    trainer = Trainer(tiny_config("train.iterations=4", "train.ppo.late_num_minibatches=4",
+                                  "train.ppo.late_from_env_steps=64"), tmp_path / "run")  # fmt: skip
+    steps = []
+    trainer.ppo.optimizer.optimizer.register_step_pre_hook(lambda *_: steps.append(trainer.iteration))
+    trainer.run()
+    rows = list(csv.DictReader((tmp_path / "run" / "metrics.csv").open()))
+    assert [float(r["num_minibatches"]) for r in rows] == [2, 2, 4, 4]
+    assert [steps.count(k) for k in range(4)] == [2 * 2, 2 * 2, 2 * 4, 2 * 4]  # 2 epochs each
+
+
 def test_resume_from_an_optimizer_saved_with_a_float_rate(tmp_path):
     """Checkpoints saved before the rates were device tensors and Adam fused (a float rate, no `fused`)
     resume into the tensor rates and continue exactly as the new form does."""

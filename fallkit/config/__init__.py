@@ -132,13 +132,15 @@ class FallkitConfig(Section):
     @model_validator(mode="after")
     def _minibatches_fit_the_batch(self) -> "FallkitConfig":
         # an empty minibatch would fail deep inside the loss; train=quick asks for 16 of them
-        samples = self.sim.num_envs * self.train.num_steps
-        if self.mode == "train" and samples < 2 * self.train.ppo.num_minibatches:
-            raise ValueError(
-                f"train.ppo.num_minibatches={self.train.ppo.num_minibatches} leaves fewer than 2 samples per "
-                f"minibatch in a batch of {samples} (sim.num_envs={self.sim.num_envs} × train.num_steps="
-                f"{self.train.num_steps}): lower train.ppo.num_minibatches or raise sim.num_envs"
-            )
+        samples, ppo = self.sim.num_envs * self.train.num_steps, self.train.ppo
+        for name in ("num_minibatches", "late_num_minibatches"):
+            count = getattr(ppo, name)
+            if self.mode == "train" and count is not None and samples < 2 * count:
+                raise ValueError(
+                    f"train.ppo.{name}={count} leaves fewer than 2 samples per minibatch in a batch of {samples} "
+                    f"(sim.num_envs={self.sim.num_envs} × train.num_steps={self.train.num_steps}): lower "
+                    f"train.ppo.{name} or raise sim.num_envs"
+                )
         return self
 
     @model_validator(mode="after")

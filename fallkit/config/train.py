@@ -28,6 +28,16 @@ class PPOConfig(Section):
     """Table III; `learning_rate` is the starting point of the actor's adaptive (KL) rule."""
 
     num_minibatches: int = Field(4, gt=0)
+    late_num_minibatches: int | None = Field(
+        None,
+        gt=0,
+        description="from late_from_env_steps on, the update's minibatch count instead of num_minibatches: many "
+        "small steps while the policy learns to soften the fall, fewer bigger ones (a larger sample per step, a "
+        "higher rate the KL rule allows) once it learns to steer; null = num_minibatches throughout (docs/training.md)",
+    )
+    late_from_env_steps: int = Field(
+        6_000_000, ge=0, description="env steps (all worlds, all ranks) after which late_num_minibatches applies"
+    )
     epochs: int = Field(5, gt=0)
     clip: float = Field(0.2, gt=0)
     entropy_coef: float = Field(0.0, ge=0)
@@ -133,6 +143,11 @@ class PPOConfig(Section):
                 f"[{self.lr_min:g}, {self.lr_max:g}], the range of the KL-adaptive rate: change one of the three"
             )
         return self
+
+    def minibatches_at(self, env_steps: int) -> int:
+        """The update's minibatch count after `env_steps` env steps of training (late_num_minibatches' schedule)."""
+        late = self.late_num_minibatches is not None and env_steps >= self.late_from_env_steps
+        return self.late_num_minibatches if late else self.num_minibatches
 
     def per_term(self, option: str, terms: list[str]) -> dict[str, float]:
         """`term_lam` or `term_gamma` for a run with these reward terms: the default's λ only where its term is

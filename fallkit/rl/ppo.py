@@ -5,7 +5,8 @@ One call of `PPO.update(batch)` is one iteration's learning:
   1. GAE over the [num_envs, num_steps] batch (bootstrapping at truncation: episodes
      only end by time, so "terminated" stays False and the value of the last state
      is used).
-  2. `epochs` passes over `num_minibatches` shuffled minibatches: clipped surrogate + clipped value loss
+  2. `epochs` passes over `num_minibatches` (or the trainer's: train.ppo.late_num_minibatches) shuffled
+     minibatches: clipped surrogate + clipped value loss
      (+ entropy if its coefficient is not 0), gradients clipped to `max_grad_norm` (over both networks at
      once, or each by its own norm with `clip_per_network`).
   3. Before each minibatch's step, the KL between the collecting policy and the
@@ -164,14 +165,18 @@ class PPO:
         # train.prior=none and prior_coef > 0 is refused in one line: FallkitConfig)
         self.prior = policy_net(self.loss.actor_network).prior
 
-    def update(self, batch: TensorDict, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Learn from one [num_envs, num_steps] batch; returns the iteration's mean figures, each a scalar
-        tensor still on the device (the trainer reads them with the iteration's other figures, at once)."""
+    def update(
+        self, batch: TensorDict, generator: torch.Generator | None = None, num_minibatches: int | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Learn from one [num_envs, num_steps] batch in `num_minibatches` (default: the config's) minibatches
+        per epoch; returns the iteration's mean figures, each a scalar tensor still on the device (the trainer
+        reads them with the iteration's other figures, at once)."""
         cfg = self.cfg
+        minibatches = num_minibatches or cfg.num_minibatches
         critic_net = value_net(self.critic)
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
         n = flat.shape[0]
-        mb = n // cfg.num_minibatches
+        mb = n // minibatches
         # + the aids' (below); learning_rate_mean: the actor's rate averaged over the update's steps. The rule
         # moves it at every minibatch, so `learning_rate` (the rate after the last one) can sit at lr_min while
         # most steps were taken at several times that
@@ -182,7 +187,7 @@ class PPO:
         # every epoch's shuffle in one copy to the device (a copy waits for the device's queue)
         perms = torch.stack([torch.randperm(n, generator=generator) for _ in range(cfg.epochs)]).to(flat.device)
         for perm in perms:
-            for k in range(cfg.num_minibatches):
+            for k in range(minibatches):
                 rows = perm[k * mb : (k + 1) * mb]
                 data, unmirrored = self._minibatch(flat, flat_image, rows)
                 old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
@@ -221,6 +226,7 @@ class PPO:
                 count += 1
         stats = dict(zip(names + list(aids), sums / count)) | advantage_stats
         stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms / count
+        stats["num_minibatches"] = torch.tensor(float(minibatches), device=flat.device)
         return stats | self._state_stats(policy_net(self.actor), critic_net)
 
     def _learning_aids(

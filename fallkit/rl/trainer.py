@@ -207,7 +207,9 @@ class Trainer:
         self._share_cores()
         torch.set_num_threads(self.update_threads)
         with subnormals_flushed():  # else the update slows as the critic saturates (fallkit.machine)
-            stats = self.ppo.update(batch, generator=self.shuffle)
+            ranks = dist.get_world_size() if distributed() else 1
+            minibatches = self.config.train.ppo.minibatches_at(self.iteration * batch.numel() * ranks)
+            stats = self.ppo.update(batch, generator=self.shuffle, num_minibatches=minibatches)
         if self.replay is not None:  # the update's advantages score the falls the batch played
             column = self.replay_column
             score = batch["advantage"] if column is None else batch["term_advantages"][..., column]
