@@ -168,15 +168,12 @@ class PPO:
     def update(
         self, batch: TensorDict, generator: torch.Generator | None = None, num_minibatches: int | None = None
     ) -> dict[str, torch.Tensor]:
-        """Learn from one [num_envs, num_steps] batch in `num_minibatches` (default: the config's) minibatches
-        per epoch; returns the iteration's mean figures, each a scalar tensor still on the device (the trainer
-        reads them with the iteration's other figures, at once)."""
-        cfg = self.cfg
-        minibatches = num_minibatches or cfg.num_minibatches
+        """Learn from one [num_envs, num_steps] batch in `num_minibatches` (else the config's) minibatches an epoch;
+        the iteration's mean figures, scalar tensors still on the device (the trainer reads them all at once)."""
+        cfg, minibatches = self.cfg, num_minibatches or self.cfg.num_minibatches
         critic_net = value_net(self.critic)
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
-        n = flat.shape[0]
-        mb = n // minibatches
+        n, mb = flat.shape[0], flat.shape[0] // minibatches
         # + the aids' (below); learning_rate_mean: the actor's rate averaged over the update's steps. The rule
         # moves it at every minibatch, so `learning_rate` (the rate after the last one) can sit at lr_min while
         # most steps were taken at several times that
