@@ -97,7 +97,7 @@ def test_presets_compose_and_change_what_they_say():
     assert gpu.sim.backend == "warp" and (gpu.sim.num_envs, gpu.train.ppo.num_minibatches) == (4096, 4)
     assert gpu.train.actor_hidden == quick.train.actor_hidden and gpu.train.init_noise_std == quick.train.init_noise_std
     assert gpu.train.max_minutes == 10 and gpu.train.ppo.term_lam == quick.train.ppo.term_lam
-    # train=quick for an hour on the same CPU: only the budget and 4 bigger minibatches differ
+    # train=quick for an hour on the same CPU: only the budget and, after 6 M env steps, 4 bigger minibatches differ
     hour = composed("train=hour")
     assert (hour.sim.num_envs, hour.train.ppo.num_minibatches, hour.train.max_minutes) == (1024, 16, 60)
     assert [hour.train.ppo.minibatches_at(steps) for steps in (0, 5_999_999, 6_000_000)] == [16, 16, 4]

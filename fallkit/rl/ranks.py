@@ -13,6 +13,11 @@ def distributed() -> bool:
     return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
 
 
+def world_size() -> int:
+    """The ranks that collect and learn together: 1 without torchrun."""
+    return dist.get_world_size() if distributed() else 1
+
+
 def average_gradients(params: list[torch.Tensor]) -> None:
     if not distributed():
         return

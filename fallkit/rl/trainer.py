@@ -42,7 +42,7 @@ from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO
-from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks
+from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks, world_size
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.self_imitation import make_self_imitation
 from fallkit.rl.shaping import OrientationPotential
@@ -188,9 +188,8 @@ class Trainer:
         stats = dict(zip(stats, torch.stack([v.to(torch.float64) for v in stats.values()]).tolist()))
         t2 = time.perf_counter()
         self.iteration += 1
-        ranks = dist.get_world_size() if distributed() else 1
         stats["collect_s"], stats["update_s"] = t1 - t0, t2 - t1
-        stats["env_steps_per_s"] = batch.numel() * ranks / (t2 - t0)
+        stats["env_steps_per_s"] = batch.numel() * world_size() / (t2 - t0)
         stats["unstable"] = float(self.env.sim.num_unstable)  # a count kept on the host
         return stats
 
@@ -207,8 +206,7 @@ class Trainer:
         self._share_cores()
         torch.set_num_threads(self.update_threads)
         with subnormals_flushed():  # else the update slows as the critic saturates (fallkit.machine)
-            ranks = dist.get_world_size() if distributed() else 1
-            minibatches = self.config.train.ppo.minibatches_at(self.iteration * batch.numel() * ranks)
+            minibatches = self.config.train.ppo.minibatches_at(self.iteration * batch.numel() * world_size())
             stats = self.ppo.update(batch, generator=self.shuffle, num_minibatches=minibatches)
         if self.replay is not None:  # the update's advantages score the falls the batch played
             column = self.replay_column
