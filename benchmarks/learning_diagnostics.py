@@ -24,11 +24,15 @@ evaluation) and answers three questions on the same falls its evaluation used:
    with; the evaluation has none), `--noise-repeats` times each: the shares of seek's easy falls each keeps
    and of the hard ones each fixes (`under_noise`). If seek under that noise lost its easy falls as often as
    the policy loses them, the training falls would not show that the prior lands them.
+5. **When does the policy steer**: along the same replays, the angle between the root's up axis and the end
+   pose's (the orientation term's tilt, as an angle) averaged over the falls, by time, for the policy and
+   seek (`tilt_error_by_time`). A policy that only chooses the side in the air lowers it before landing
+   (~0.7 s); one that rolls over on the ground lowers it until its learned deviation fades (T_blend).
 
     python benchmarks/learning_diagnostics.py RUN_DIR   # e.g. runs/learning_power8/<time>/seed0
 
 The last line is one JSON object (`easy_kept`, `hard_fixed`, `seek_keeps_policys`, `returns`, `goal_dependence`,
-`deviation_sq`, `under_noise`).
+`deviation_sq`, `under_noise`, `tilt_error_by_time`).
 """
 
 from __future__ import annotations
@@ -61,16 +65,17 @@ def fall_groups(trials: np.lib.npyio.NpzFile) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None], float]:
+def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None], float, list]:
     """(total, orientation) return of policy and seek per fall, the goal dependence by step (None once the
-    learned deviation has faded out), and Σ_j d_j² of the learned deviation averaged over the falls' steps."""
+    learned deviation has faded out), Σ_j d_j² of the learned deviation averaged over the falls' steps, and
+    the mean tilt error [rad] of policy and seek after every step."""
     k, net = len(trials), setup.policy.module.net
     cols = actor_slices(env.spec, env.observes_sensitivity, env.observes_gravity)
     goal = torch.cat([torch.arange(cols[n].start, cols[n].stop) for n in ("goal_root_quat", "goal_joint_pos")])
     other = torch.roll(torch.arange(k), 1)  # each fall's end pose replaced by the previous fall's
     td = env.reset_to(trials.qpos.repeat(2, 1), trials.qvel.repeat(2, 1), trials.pose_ids.repeat(2))
     start_q = env.sim.state.joint_pos.clone()
-    total, orientation, dependence, squared = torch.zeros(2 * k), torch.zeros(2 * k), [], []
+    total, orientation, dependence, squared, tilt_error = torch.zeros(2 * k), torch.zeros(2 * k), [], [], []
     weight = setup.config.reward.orientation
     # −‖R(θ)ᵀe_z − R(θ̂)ᵀe_z‖², the orientation term's tilt distance, read off the critic observation
     tilt = OrientationPotential(env.spec, 1.0, env.observes_sensitivity, env.observes_gravity)
@@ -87,9 +92,12 @@ def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]]
         action[k:] = seek_action(env, start_q, slice(k, None))
         td = env.step(td.set("action", action))["next"]
         total += td["reward"].view(-1)
-        orientation += weight * env.dt * env.tracking_blend() * tilt(td["critic"]).view(-1)
+        distance = tilt(td["critic"]).view(-1)  # −‖Δ up axis‖², the chord of the up axes' angle
+        orientation += weight * env.dt * env.tracking_blend() * distance
+        angle = 2.0 * torch.asin((-distance).clamp(min=0.0).sqrt().mul(0.5).clamp(max=1.0))
+        tilt_error.append((angle[:k].mean().item(), angle[k:].mean().item()))
     returns = {"policy": (total[:k].numpy(), orientation[:k].numpy()), "seek": (total[k:].numpy(), orientation[k:].numpy())}
-    return returns, dependence, float(np.mean(squared))
+    return returns, dependence, float(np.mean(squared)), tilt_error
 
 
 @torch.no_grad()
@@ -132,7 +140,7 @@ def main() -> None:
     env = make_env(run_config, robot_spec(run_config.robot), split=setup.split, seed=config.eval.seed,
                    num_envs=2 * k, poses=setup.poses)  # fmt: skip
     trials = draw_trials(env, k, config.eval.seed)
-    returns, dependence, deviation_sq = replay(setup, env, trials)
+    returns, dependence, deviation_sq, tilt_error = replay(setup, env, trials)
     groups = fall_groups(per_fall)
     pol = per_fall["policy/mroe"]
     out = {"run": str(args.run), "falls": k, "groups": {g: int(m.sum()) for g, m in groups.items()},
@@ -156,6 +164,10 @@ def main() -> None:
           ", ".join(f"{t}: {'faded' if v is None else f'{v:.2f}'}" for t, v in out["goal_dependence"].items()))  # fmt: skip
     out["deviation_sq"] = round(deviation_sq, 4)
     print(f"learned deviation's size, Σ_j d_j² averaged over the falls' steps: {deviation_sq:.4f}")
+    out["tilt_error_by_time"] = {f"{(t + 1) * env.dt:.1f}": [round(p, 3), round(s, 3)]
+                                 for t, (p, s) in enumerate(tilt_error) if t % steps == steps - 1}  # fmt: skip
+    print("tilt error to the end pose [rad], policy / seek, by time [s]:",
+          ", ".join(f"{t}: {p:.2f} / {s:.2f}" for t, (p, s) in out["tilt_error_by_time"].items()))  # fmt: skip
     if args.noise_repeats > 0:
         noisy = tilt_errors_under_noise(setup, run_config, trials, args.noise_repeats, config.eval.seed)
         easy, hard = groups["easy"], groups["hard"]
