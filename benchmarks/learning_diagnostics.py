@@ -1,7 +1,7 @@
 """Where a trained policy loses the end pose, and whether the task's reward agrees (issue 13).
 
 Reads a finished training run (its checkpoint and the per-fall results `eval_trials.npz` of its
-evaluation) and answers three questions on the same falls its evaluation used:
+evaluation) and answers five questions on the same falls its evaluation used:
 
 1. **Which falls**: seek (the open-loop blend to the target joints, no learning) lands some falls
    within 0.5 rad of the target tilt ("easy") and ends others beyond 2 rad ("hard"). What share
@@ -65,7 +65,9 @@ def fall_groups(trials: np.lib.npyio.NpzFile) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def replay(setup, env, trials) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None], float, list]:
+def replay(
+    setup, env, trials
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[float | None], float, list[tuple[float, float]]]:
     """(total, orientation) return of policy and seek per fall, the goal dependence by step (None once the
     learned deviation has faded out), Σ_j d_j² of the learned deviation averaged over the falls' steps, and
     the mean tilt error [rad] of policy and seek after every step."""
