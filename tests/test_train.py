@@ -48,12 +48,14 @@ def test_same_seed_same_iterations_bit_for_bit(tmp_path):
 
 REPLAY = ["train.level_replay.share=0.5", "train.level_replay.size=4"]
 SELF_IMITATION = ["train.self_imitation.steps=4", "train.self_imitation.size=64", "train.self_imitation.minibatch=4"]
+# the orientation weight x5 until 64 env steps: the checkpoint at iteration 2 lies on the switch
+EARLY_FACTOR = ["+train.early_reward_factor.orientation=5", "train.early_until_env_steps=64"]
 
 
 @pytest.mark.parametrize(
     "noise",
-    [[], ["train.noise_correlation_time=0.1"], REPLAY, SELF_IMITATION],
-    ids=["white", "correlated", "level-replay", "self-imitation"],
+    [[], ["train.noise_correlation_time=0.1"], REPLAY, SELF_IMITATION, EARLY_FACTOR],
+    ids=["white", "correlated", "level-replay", "self-imitation", "early-reward-factor"],
 )
 def test_resume_continues_exactly(tmp_path, noise):
     straight = train(tmp_path / "straight", "train.iterations=4", "train.checkpoint_every=2", *noise)
@@ -65,6 +67,7 @@ def test_resume_continues_exactly(tmp_path, noise):
     resumed = train(tmp_path / "resumed", "train.iterations=4", f"resume={half}", *noise)
     assert load_checkpoint(resumed)["iteration"] == 4
     assert_same_weights(actor_of(straight), actor_of(resumed))
+    assert_same_weights(load_checkpoint(straight)["critic"], load_checkpoint(resumed)["critic"])
     if noise == REPLAY:  # stored falls were replayed, and the figures say so
         last = (tmp_path / "straight" / "metrics.csv").read_text().splitlines()
         row = dict(zip(last[0].split(","), last[-1].split(",")))

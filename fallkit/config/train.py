@@ -334,6 +334,19 @@ class TrainConfig(Section):
         "env.sensitivity_inputs) starting at zero weight; a new run otherwise (fallkit.rl.init_from). resume= "
         "continues a run instead",
     )
+    early_reward_factor: dict[str, float] = Field(
+        default_factory=dict,
+        description="reward terms whose Table I weight is multiplied by this factor for the first "
+        "early_until_env_steps env steps, Table I's weight after (`+train.early_reward_factor.orientation=5`): steer "
+        "first, soften after; the critic's heads of those terms are rescaled at the switch (fallkit.rl."
+        "reward_schedule, measured in docs/training.md); {} = Table I's weights throughout",
+    )
+    early_until_env_steps: int = Field(
+        3_500_000, ge=0, description="env steps (all worlds, all ranks) after which early_reward_factor starts to fade"
+    )
+    early_fade_env_steps: int = Field(
+        0, ge=0, description="env steps over which each early factor then falls linearly to 1 (Table I's weight); 0 = at once"
+    )
     teachers: TeachersConfig = Field(default_factory=TeachersConfig)
     ppo: PPOConfig = Field(default_factory=PPOConfig)
     checkpoint_every: int = Field(500, gt=0, description="iterations between checkpoints")
@@ -341,3 +354,19 @@ class TrainConfig(Section):
     torch_threads: int = Field(
         0, ge=0, description="torch CPU threads of the PPO update (0 = this process's share of the cores, fallkit.machine); collection uses one beside MuJoCo's"
     )
+
+    @field_validator("early_reward_factor", mode="before")
+    @classmethod
+    def _no_factors(cls, value: object) -> object:
+        return {} if value is None else value  # `train.early_reward_factor=null`: a Hydra merge cannot empty a dict
+
+    @model_validator(mode="after")
+    def _factors_positive(self) -> TrainConfig:
+        bad = {k: v for k, v in self.early_reward_factor.items() if not v > 0}
+        if bad:  # a factor 0 would silently drop a term for a while; reward.<term>=0 drops it openly
+            name, v = next(iter(bad.items()))
+            raise ValueError(
+                f"train.early_reward_factor.{name}={v}: a factor on a reward weight must be > 0 "
+                f"(to drop the term: reward.{name}=0; to keep Table I's weight: train.early_reward_factor.{name}=1)"
+            )
+        return self

@@ -243,6 +243,18 @@ class ValueNet(nn.Module):
         return torch.sqrt(self.target.var + self.target.eps)
 
     @torch.no_grad()
+    def scale_heads(self, factor: torch.Tensor) -> None:
+        """Every head's prediction times its factor [heads], exactly: the last layer's rows (and, with target
+        normalisation, the statistics' mean) scaled — for a reward term whose weight changed by that factor
+        (fallkit.rl.reward_schedule), whose return is linear in it."""
+        last = self.value[-1]
+        factor = factor.to(last.weight)
+        last.weight.mul_(factor.unsqueeze(-1))
+        last.bias.mul_(factor)
+        if self.target is not None:  # v = mean + std·(W h + b): mean and (W, b) by the factor, std kept
+            self.target.mean.mul_(factor.to(self.target.mean))
+
+    @torch.no_grad()
     def update_target_statistics(self, targets: torch.Tensor, merge=None) -> None:
         """Merge value targets into `target` (then `merge(target)`, e.g. across ranks) and rescale the last
         layer so every value the network predicts stays what it was (PopArt's preserving step): the

@@ -3,10 +3,15 @@ learning rate and observation statistics (no-ops on one process)."""
 
 from __future__ import annotations
 
+import logging
+import os
+
 import torch
 import torch.distributed as dist
 
 from fallkit.rl.models import RunningNorm
+
+log = logging.getLogger(__name__)
 
 
 def distributed() -> bool:
@@ -65,3 +70,25 @@ def any_over_ranks(flags: tuple[bool, ...], device: torch.device | str = "cpu") 
     agreed = torch.tensor(flags, dtype=torch.int32, device=device)
     dist.all_reduce(agreed, op=dist.ReduceOp.MAX)
     return tuple(bool(f) for f in agreed.tolist())
+
+
+def check_ranks_in_sync(actor) -> None:
+    """Every rank must end with the same weights (gradients were averaged); say so, or fail loudly."""
+    flat = torch.cat([p.detach().reshape(-1).double() for p in actor.parameters()])
+    mine = torch.stack([flat.sum(), flat.square().sum()])
+    gathered = [torch.zeros_like(mine) for _ in range(dist.get_world_size())]
+    dist.all_gather(gathered, mine)
+    if any(not torch.equal(g, gathered[0]) for g in gathered):
+        raise RuntimeError("distributed training: ranks ended with different weights")
+    if dist.get_rank() == 0:
+        log.info("distributed training: weights identical on %d ranks", dist.get_world_size())
+    dist.barrier()
+
+
+def init_distributed(device: str) -> int:
+    """Join the torchrun group when launched by torchrun; return this process's rank."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or distributed():
+        return dist.get_rank() if distributed() else 0
+    backend = "nccl" if device.startswith("cuda") and torch.cuda.is_available() else "gloo"
+    dist.init_process_group(backend=backend)
+    return dist.get_rank()

@@ -119,7 +119,7 @@ class EndPoseRelabel:
         self.episode_seconds, self.blend_time = episode_seconds, blend_time  # phase t/T back to t
         self.recomputed = [(rewards.columns.index(n), f) for n, f in (("orientation", orientation), ("joints", joints))
                            if n in rewards.columns]  # fmt: skip
-        self.scale = rewards.scale.cpu()
+        self.rewards = rewards  # its scale read at each call: train.early_reward_factor changes it
 
     def __call__(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:
         """The copy of an [N, T] batch (as `SensitivityRelabel`'s) under end poses drawn per world."""
@@ -143,7 +143,7 @@ class EndPoseRelabel:
         )  # fmt: skip
         terms = batch["next", "reward_terms"].clone()
         for column, term in self.recomputed:
-            terms[..., column] = self.scale[column].to(device) * term(ctx)
+            terms[..., column] = self.rewards.scale[column].to(device) * term(ctx)
         image.set(("next", "reward_terms"), terms)
         image.set(("next", "reward"), terms.sum(dim=-1, keepdim=True))
         return image

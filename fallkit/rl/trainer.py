@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -42,8 +41,9 @@ from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO
-from fallkit.rl.ranks import any_over_ranks, distributed, merge_over_ranks, world_size
+from fallkit.rl.ranks import any_over_ranks, check_ranks_in_sync, distributed, init_distributed, merge_over_ranks, world_size
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
+from fallkit.rl.reward_schedule import RewardSchedule
 from fallkit.rl.self_imitation import make_self_imitation
 from fallkit.rl.shaping import OrientationPotential
 from fallkit.rl.teachers import Teachers
@@ -59,7 +59,7 @@ class Trainer:
     def __init__(self, config: FallkitConfig, run_dir: Path):
         tc = config.train
         self.config, self.run_dir = config, Path(run_dir)
-        self.rank = _init_distributed(config)
+        self.rank = init_distributed(config.sim.device)
         # MuJoCo's threads own the cores while collecting; the update has this process's share
         # of them to itself (fallkit.machine: asked again every iteration)
         self.collect_threads, self.update_threads = 1, tc.torch_threads or core_share()
@@ -98,6 +98,7 @@ class Trainer:
             for tensor in [*self.actor.state_dict().values(), *self.critic.state_dict().values()]:
                 dist.broadcast(tensor, src=0)
         self.ppo = self._make_ppo(mirror)
+        self.reward_schedule = RewardSchedule(tc, self.env.rewards, value_net(self.critic), heads)
         self.self_imitation = make_self_imitation(
             config, self.actor, self.critic, self.env.rewards, heads, self.env.num_envs, self.env.max_steps
         )
@@ -114,6 +115,7 @@ class Trainer:
         self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
         if config.resume:
             self._resume(config.resume)
+        self.reward_schedule.start(self.env_steps, self.env.num_envs * tc.num_steps * world_size())
 
     def _resume(self, path: str) -> None:
         """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state."""
@@ -147,6 +149,11 @@ class Trainer:
     @property
     def main_rank(self) -> bool:
         return self.rank == 0
+
+    @property
+    def env_steps(self) -> int:
+        """Env steps collected so far (all worlds, all ranks): the clock of the training schedules."""
+        return self.iteration * self.env.num_envs * self.config.train.num_steps * world_size()
 
     def run(self) -> Path:
         """Train until the iteration budget, the time budget or a stop signal; returns the last checkpoint."""
@@ -182,6 +189,7 @@ class Trainer:
         """Collect, learn, and the iteration's figures, read from the device once (a read waits for
         the device's queue: once per iteration, after the update, so `update_s` is its real time)."""
         t0 = time.perf_counter()
+        factors = self.reward_schedule.step(self.env_steps)
         batch = self.collect()
         t1 = time.perf_counter()
         stats = self.learn(batch) | self.diagnostics(batch)
@@ -191,7 +199,7 @@ class Trainer:
         stats["collect_s"], stats["update_s"] = t1 - t0, t2 - t1
         stats["env_steps_per_s"] = batch.numel() * world_size() / (t2 - t0)
         stats["unstable"] = float(self.env.sim.num_unstable)  # a count kept on the host
-        return stats
+        return stats | factors
 
     def collect(self) -> TensorDict:
         """num_steps policy steps in every env: the [num_envs, num_steps] batch."""
@@ -206,7 +214,7 @@ class Trainer:
         self._share_cores()
         torch.set_num_threads(self.update_threads)
         with subnormals_flushed():  # else the update slows as the critic saturates (fallkit.machine)
-            minibatches = self.config.train.ppo.minibatches_at(self.iteration * batch.numel() * world_size())
+            minibatches = self.config.train.ppo.minibatches_at(self.env_steps)
             stats = self.ppo.update(batch, generator=self.shuffle, num_minibatches=minibatches)
         if self.replay is not None:  # the update's advantages score the falls the batch played
             column = self.replay_column
@@ -325,7 +333,7 @@ class Trainer:
             self.save(last)
             print(f"\ntrained {self.iteration} iterations in {elapsed_s / 60:.1f} min; checkpoint: {last}")
         if distributed():
-            _check_ranks_in_sync(self.actor)
+            check_ranks_in_sync(self.actor)
         return last
 
 
@@ -362,28 +370,6 @@ def _update_normalizers(actor, critic, batch: TensorDict, mirror: ObservationMir
             obs = torch.cat([obs, flip(obs)])
         norm.update(obs)
         merge_over_ranks(norm)
-
-
-def _check_ranks_in_sync(actor) -> None:
-    """Every rank must end with the same weights (gradients were averaged); say so, or fail loudly."""
-    flat = torch.cat([p.detach().reshape(-1).double() for p in actor.parameters()])
-    mine = torch.stack([flat.sum(), flat.square().sum()])
-    gathered = [torch.zeros_like(mine) for _ in range(dist.get_world_size())]
-    dist.all_gather(gathered, mine)
-    if any(not torch.equal(g, gathered[0]) for g in gathered):
-        raise RuntimeError("distributed training: ranks ended with different weights")
-    if dist.get_rank() == 0:
-        log.info("distributed training: weights identical on %d ranks", dist.get_world_size())
-    dist.barrier()
-
-
-def _init_distributed(config: FallkitConfig) -> int:
-    """Join the torchrun group when launched by torchrun; return this process's rank."""
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or distributed():
-        return dist.get_rank() if distributed() else 0
-    backend = "nccl" if config.sim.device.startswith("cuda") and torch.cuda.is_available() else "gloo"
-    dist.init_process_group(backend=backend)
-    return dist.get_rank()
 
 
 def _replay_column(score: str, heads: list[str]) -> int | None:

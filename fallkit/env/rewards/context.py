@@ -93,11 +93,23 @@ class RewardSum:
             self.columns += parts
             column_term += [k] * len(parts)
         self.column_term = torch.tensor(column_term, dtype=torch.long, device=device)
-        weights = torch.tensor(list(active.values()), device=device)
-        self.scale = weights[self.column_term] * dt  # [columns]
+        self.weights = torch.tensor(list(active.values()), device=device)  # [names], the config's
+        self.scale = self.weights[self.column_term] * dt  # [columns]
         self.last_mean = torch.zeros(len(self.names), device=device)
         self._sum = torch.zeros(len(self.names), device=device)
         self._count = 0
+
+    def reweight(self, factors: dict[str, float]) -> None:
+        """Each named term's config weight times its factor from now on (train.early_reward_factor); the terms
+        not named keep their config weight, so `reweight({})` restores them all."""
+        unknown = sorted(set(factors) - set(self.names))
+        if unknown:
+            raise ValueError(
+                f"{', '.join(unknown)} is not a reward term of this run (a weight of 0 drops a term); "
+                f"the terms: {', '.join(self.names)}"
+            )
+        factor = torch.tensor([factors.get(name, 1.0) for name in self.names], device=self.weights.device)
+        self.scale = (self.weights * factor)[self.column_term] * self.dt
 
     def __call__(self, ctx: RewardContext) -> torch.Tensor:
         """The reward [N] of one step."""

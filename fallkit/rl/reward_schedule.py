@@ -1,0 +1,66 @@
+"""train.early_reward_factor: some reward terms weigh more for a run's first env steps, Table I's weights after.
+
+Why: with Table I's weights a 15-minute biped20 policy (train=quick, 2 CPU cores) learns to soften the fall
+but hardly to steer toward the end pose's tilt; the orientation term ×5 throughout makes it steer (MROE
+0.95 → 0.63 of the best strategy's) and land harder (max impact 0.86 → 0.96), and ×5 first, Table I's
+weight after, keeps most of the steering for less of the impact (docs/training.md, the lever table).
+
+At the switch the critic's heads of the reweighted terms (train.ppo.value_per_term) are rescaled by
+new/old factor: a head predicts its own term's return, which is linear in the term's weight, so its
+predictions stay true and the advantages see no jump. One value for the whole return cannot be split
+that way; it re-fits over the next updates.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+
+from fallkit.config import TrainConfig
+from fallkit.env.rewards.context import RewardSum
+from fallkit.errors import ConfigError
+from fallkit.rl.models import ValueNet
+
+log = logging.getLogger(__name__)
+
+
+class RewardSchedule:
+    """Sets the env's reward weights for the env steps trained so far, and rescales the critic's heads when
+    they change. `heads` are the critic's value heads' names (a term, a term/component, or "value")."""
+
+    def __init__(self, config: TrainConfig, rewards: RewardSum, critic: ValueNet, heads: list[str]):
+        self.early, self.until, self.fade = dict(config.early_reward_factor), config.early_until_env_steps, config.early_fade_env_steps
+        self.rewards, self.critic, self.heads = rewards, critic, heads
+        unknown = sorted(set(self.early) - set(rewards.names))
+        if unknown:
+            raise ConfigError(
+                f"train.early_reward_factor: {', '.join(unknown)} is not a reward term of this run (terms: "
+                f"{', '.join(rewards.names)}): name one of them, or drop the key with train.early_reward_factor=null"
+            )
+        self.factors: dict[str, float] = {}  # what the env's weights carry now ({}: the config's)
+
+    def factors_at(self, env_steps: int) -> dict[str, float]:
+        if env_steps < self.until:
+            return self.early
+        left = 1.0 - (env_steps - self.until) / self.fade if self.fade else 0.0  # the share of the early factor left
+        return {name: 1.0 + (f - 1.0) * left for name, f in self.early.items()} if left > 0 else {}
+
+    def start(self, env_steps: int, per_iteration: int) -> None:
+        """The weights of a run that starts (or resumes) after `env_steps`: those its last iteration collected
+        with, which its critic fits (a switch due at the next iteration then rescales it as usual)."""
+        self.factors = self.factors_at(max(env_steps - per_iteration, 0))
+        self.rewards.reweight(self.factors)
+
+    def step(self, env_steps: int) -> dict[str, float]:
+        """Before an iteration's collection: switch the weights if the schedule says so; each term's factor, for the log."""
+        factors = self.factors_at(env_steps)
+        if factors != self.factors:
+            change = [factors.get(h.split("/")[0], 1.0) / self.factors.get(h.split("/")[0], 1.0) for h in self.heads]
+            if self.heads != ["value"]:
+                self.critic.scale_heads(torch.tensor(change))
+            if self.factors == self.early or not factors:  # the fade's start and end, not its every step
+                log.info("reward weights after %d env steps: factors %s (train.early_reward_factor)", env_steps, factors or "none")
+            self.factors = factors
+            self.rewards.reweight(factors)
+        return {f"reward_factor/{name}": self.factors.get(name, 1.0) for name in self.early}
