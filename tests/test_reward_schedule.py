@@ -13,7 +13,8 @@ from fallkit.env.rewards import RewardSum
 from fallkit.rl.models import ValueNet
 from test_rewards import make_ctx, make_state
 
-EARLY = ["+train.early_reward_factor.orientation=5", "train.early_until_env_steps=64"]  # 32 env steps an iteration
+# 32 env steps an iteration: x5 for iterations 0-1, Table I's weight at once from iteration 2
+EARLY = ["+train.early_reward_factor.orientation=5", "train.early_until_env_steps=64", "train.early_fade_env_steps=0"]
 
 
 def test_reweight_multiplies_the_named_terms_and_restores_them():

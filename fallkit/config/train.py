@@ -345,7 +345,10 @@ class TrainConfig(Section):
         3_500_000, ge=0, description="env steps (all worlds, all ranks) after which early_reward_factor starts to fade"
     )
     early_fade_env_steps: int = Field(
-        0, ge=0, description="env steps over which each early factor then falls linearly to 1 (Table I's weight); 0 = at once"
+        2_000_000,
+        ge=0,
+        description="env steps over which each early factor then falls linearly to 1 (Table I's weight); 0 = at once, "
+        "which undid the steering the early factor bought (docs/learning_log.md)",
     )
     teachers: TeachersConfig = Field(default_factory=TeachersConfig)
     ppo: PPOConfig = Field(default_factory=PPOConfig)
