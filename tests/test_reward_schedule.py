@@ -14,7 +14,7 @@ from fallkit.rl.models import ValueNet
 from test_rewards import make_ctx, make_state
 
 # 32 env steps an iteration: x5 for iterations 0-1, Table I's weight at once from iteration 2
-EARLY = ["+train.early_reward_factor.orientation=5", "train.early_until_env_steps=64", "train.early_fade_env_steps=0"]
+EARLY = ["++train.early_reward_factor.orientation=5", "train.early_until_env_steps=64", "train.early_fade_env_steps=0"]
 
 
 def test_reweight_multiplies_the_named_terms_and_restores_them():
@@ -102,9 +102,12 @@ def test_a_factor_must_be_positive_and_name_a_reward_term(tmp_path):
 
     with pytest.raises(ConfigError, match=r"train.early_reward_factor.orientation=0.0: a factor on a reward weight "
                                           r"must be > 0 \(to drop the term: reward.orientation=0"):  # fmt: skip
-        composed_config(*TINY, "+train.early_reward_factor.orientation=0")
+        composed_config(*TINY, "++train.early_reward_factor.orientation=0")
     with pytest.raises(ConfigError, match=r"train.early_reward_factor: joint is not a reward term of this run "
                                           r"\(terms: impact, .*joints"):  # fmt: skip
-        Trainer(composed_config(*TINY, "+train.early_reward_factor.joint=5"), tmp_path / "run")
-    none = composed_config(*TINY, "+train.early_reward_factor.orientation=5", "train.early_reward_factor=null")
+        Trainer(composed_config(*TINY, "++train.early_reward_factor.joint=5"), tmp_path / "run")
+    with pytest.raises(ConfigError, match=r"train.self_imitation keeps returns under the reward weights they were "
+                                          r"collected with, .* add train.early_reward_factor=null"):  # fmt: skip
+        composed_config(*TINY, "train.self_imitation.steps=4")
+    none = composed_config(*TINY, "++train.early_reward_factor.orientation=5", "train.early_reward_factor=null")
     assert none.train.early_reward_factor == {}

@@ -83,7 +83,8 @@ def test_one_terms_self_imitation_trains_and_a_wrong_term_is_one_line_even_when_
     from fallkit.errors import ConfigError
     from fallkit.rl.trainer import Trainer
 
-    term = ["train.self_imitation.steps=2", "train.self_imitation.minibatch=2", "train.self_imitation.term=orientation"]
+    term = ["train.early_reward_factor=null", "train.self_imitation.steps=2", "train.self_imitation.minibatch=2",
+            "train.self_imitation.term=orientation"]  # fmt: skip
     trainer = Trainer(composed_config(*TINY, *term), tmp_path / "a")
     sil = trainer.self_imitation
     assert sil.head == trainer.ppo.term_names.index("orientation")

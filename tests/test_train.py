@@ -47,10 +47,10 @@ def test_same_seed_same_iterations_bit_for_bit(tmp_path):
 
 
 REPLAY = ["train.level_replay.share=0.5", "train.level_replay.size=4"]
-SELF_IMITATION = ["train.self_imitation.steps=4", "train.self_imitation.size=64", "train.self_imitation.minibatch=4"]
+SELF_IMITATION = ["train.early_reward_factor=null", "train.self_imitation.steps=4", "train.self_imitation.size=64", "train.self_imitation.minibatch=4"]
 # the orientation weight x5 for iterations 0-1 (32 env steps each), x3 for 2, x1 from 3: the checkpoint at
 # iteration 2 lies inside the fade
-EARLY_FACTOR = ["+train.early_reward_factor.orientation=5", "train.early_until_env_steps=32",
+EARLY_FACTOR = ["++train.early_reward_factor.orientation=5", "train.early_until_env_steps=32",
                 "train.early_fade_env_steps=64"]  # fmt: skip
 
 

@@ -337,9 +337,9 @@ class TrainConfig(Section):
     early_reward_factor: dict[str, float] = Field(
         default_factory=dict,
         description="reward terms whose Table I weight is multiplied by this factor for the first "
-        "early_until_env_steps env steps, Table I's weight after (`+train.early_reward_factor.orientation=5`): steer "
-        "first, soften after; the critic's heads of those terms are rescaled at the switch (fallkit.rl."
-        "reward_schedule, measured in docs/training.md); {} = Table I's weights throughout",
+        "early_until_env_steps env steps, then fades to Table I's (`train.early_reward_factor.orientation=5`; `++` "
+        "where the preset sets none): steer first, soften after; the critic's heads of those terms are rescaled as "
+        "the weight changes (fallkit.rl.reward_schedule, measured in docs/training.md); {} = Table I's throughout",
     )
     early_until_env_steps: int = Field(
         3_500_000, ge=0, description="env steps (all worlds, all ranks) after which early_reward_factor starts to fade"
@@ -371,5 +371,11 @@ class TrainConfig(Section):
             raise ValueError(
                 f"train.early_reward_factor.{name}={v}: a factor on a reward weight must be > 0 "
                 f"(to drop the term: reward.{name}=0; to keep Table I's weight: train.early_reward_factor.{name}=1)"
+            )
+        if self.early_reward_factor and self.self_imitation.steps > 0:  # its store would mix two weightings' returns
+            raise ValueError(
+                "train.self_imitation keeps returns under the reward weights they were collected with, which "
+                "train.early_reward_factor changes during the run: add train.early_reward_factor=null (train=quick sets "
+                "orientation: 5)"
             )
         return self

@@ -30,7 +30,8 @@ class RewardSchedule:
     they change. `heads` are the critic's value heads' names (a term, a term/component, or "value")."""
 
     def __init__(self, config: TrainConfig, rewards: RewardSum, critic: ValueNet, heads: list[str]):
-        self.early, self.until, self.fade = dict(config.early_reward_factor), config.early_until_env_steps, config.early_fade_env_steps
+        self.early = dict(config.early_reward_factor)
+        self.until, self.fade = config.early_until_env_steps, config.early_fade_env_steps
         self.rewards, self.critic, self.heads = rewards, critic, heads
         unknown = sorted(set(self.early) - set(rewards.names))
         if unknown:
@@ -60,7 +61,8 @@ class RewardSchedule:
             if self.heads != ["value"]:
                 self.critic.scale_heads(torch.tensor(change))
             if self.factors == self.early or not factors:  # the fade's start and end, not its every step
-                log.info("reward weights after %d env steps: factors %s (train.early_reward_factor)", env_steps, factors or "none")
+                log.info("reward weights after %d env steps: factors %s (train.early_reward_factor)",
+                         env_steps, factors or "none")
             self.factors = factors
             self.rewards.reweight(factors)
         return {f"reward_factor/{name}": self.factors.get(name, 1.0) for name in self.early}
