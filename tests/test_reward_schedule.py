@@ -111,3 +111,30 @@ def test_a_factor_must_be_positive_and_name_a_reward_term(tmp_path):
         composed_config(*TINY, "train.self_imitation.steps=4")
     none = composed_config(*TINY, "++train.early_reward_factor.orientation=5", "train.early_reward_factor=null")
     assert none.train.early_reward_factor == {}
+
+
+def test_a_checkpoint_inside_the_schedule_loads_a_critic_of_table_ones_weights(tmp_path):
+    """Saved at a factor 5 (the checkpoint records it), the critic loads for evaluation in Table I's units (its
+    orientation head ÷5), and a run started from it (train.init_from) scales it to its own first factor."""
+    from fallkit.rl.checkpoint import load_checkpoint
+    from fallkit.rl.models import value_net
+    from fallkit.rl.policy import load_policy
+    from fallkit.rl.trainer import Trainer
+
+    config = ["train.iterations=1", "train.precision=float32", *EARLY]
+    trainer = Trainer(composed_config(*TINY, *config), tmp_path / "run")
+    last = trainer.run()
+    orientation = trainer.env.rewards.names.index("orientation")
+    assert load_checkpoint(last)["head_factors"][orientation] == 5.0
+    obs = trainer.td["critic"]
+    with torch.no_grad():
+        trained = value_net(trainer.critic)(obs)
+        loaded = load_policy(last).critic(obs)
+        others = [k for k in range(trained.shape[-1]) if k != orientation]
+        assert torch.allclose(loaded[..., orientation], trained[..., orientation] / 5, rtol=1e-5, atol=1e-6)
+        assert torch.allclose(loaded[..., others], trained[..., others], rtol=1e-5, atol=1e-6)
+        table_one = Trainer(composed_config(*TINY, "train.precision=float32", "train.early_reward_factor=null",
+                                            f"train.init_from={last}"), tmp_path / "b")  # fmt: skip
+        assert torch.allclose(value_net(table_one.critic)(obs), loaded, rtol=1e-5, atol=1e-6)
+        again = Trainer(composed_config(*TINY, *config, f"train.init_from={last}"), tmp_path / "c")
+        assert torch.allclose(value_net(again.critic)(obs), trained, rtol=1e-5, atol=1e-6)

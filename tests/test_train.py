@@ -100,7 +100,9 @@ def test_a_critic_with_layer_norm_trains_resumes_and_loads_with_the_policy(tmp_p
     from fallkit.rl.policy import load_policy
     from fallkit.rl.trainer import Trainer
 
-    trainer = Trainer(tiny_config("train.iterations=2", "train.critic_layer_norm=true"), tmp_path / "run")
+    # Table I's weights: a critic saved inside train=quick's reward schedule loads rescaled to them (test_reward_schedule)
+    trainer = Trainer(tiny_config("train.iterations=2", "train.critic_layer_norm=true", "train.early_reward_factor=null"),
+                      tmp_path / "run")
     layers = value_net(trainer.critic).value
     hidden = trainer.config.train.critic_hidden
     assert [type(m).__name__ for m in layers] == ["Linear", "LayerNorm", "ELU"] * len(hidden) + ["Linear"]

@@ -6,7 +6,8 @@ it is the whole controller: setpoint = nominal + action_scale · action.
 The networks compute in float32 whatever `train.precision` the run trained with: evaluation,
 rendering, sim2sim and the ONNX export then run the same function of the same weights.
 `load_policy(path).critic` is the trained value function V (privileged "critic"
-observation -> value, normaliser inside): `eval.poses=auto` scores end poses with it.
+observation -> value, normaliser inside) of Table I's reward weights (a checkpoint saved inside
+train.early_reward_factor's schedule is rescaled to them): `eval.poses=auto` scores end poses with it.
 """
 
 from __future__ import annotations
@@ -75,4 +76,6 @@ def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> Va
     net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads,
                    weight_columns=columns, layer_norm=config.train.critic_layer_norm)  # fmt: skip
     net.load_state_dict(weights)
+    if ckpt.get("head_factors"):  # heads trained on reweighted terms (train.early_reward_factor): Table I's values
+        net.scale_heads(1.0 / torch.tensor(ckpt["head_factors"]))
     return net.to(device).eval()

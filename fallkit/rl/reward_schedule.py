@@ -5,10 +5,13 @@ but hardly to steer toward the end pose's tilt; the orientation term ×5 through
 0.95 → 0.63 of the best strategy's) and land harder (max impact 0.86 → 0.96), and ×5 first, Table I's
 weight after, keeps most of the steering for less of the impact (docs/training.md, the lever table).
 
-At the switch the critic's heads of the reweighted terms (train.ppo.value_per_term) are rescaled by
-new/old factor: a head predicts its own term's return, which is linear in the term's weight, so its
-predictions stay true and the advantages see no jump. One value for the whole return cannot be split
-that way; it re-fits over the next updates.
+Whenever the weights change, the critic's heads of the reweighted terms (train.ppo.value_per_term) are
+rescaled by new/old factor: a head predicts its own term's return, which is linear in the term's weight, so
+its predictions stay true. That matters: a head left 5× too large keeps the ×5 credit in the advantage until
+it re-fits (what a restart with Table I's weights did), and a switch at once with the head kept true undoes the
+steering — hence a fade (docs/learning_log.md). One value for the whole return cannot be split that way; it
+re-fits over the next updates. Checkpoints store each head's factor (`head_factors`), so a loaded critic is
+brought to Table I's weights (fallkit.rl.policy, fallkit.rl.init_from).
 """
 
 from __future__ import annotations
@@ -47,19 +50,26 @@ class RewardSchedule:
         left = 1.0 - (env_steps - self.until) / self.fade if self.fade else 0.0  # the share of the early factor left
         return {name: 1.0 + (f - 1.0) * left for name, f in self.early.items()} if left > 0 else {}
 
-    def start(self, env_steps: int, per_iteration: int) -> None:
+    def head_factors(self, factors: dict[str, float] | None = None) -> list[float]:
+        """Each value head's factor [heads] under `factors` (default: the weights' now)."""
+        factors = self.factors if factors is None else factors
+        return [factors.get(head.split("/")[0], 1.0) for head in self.heads]
+
+    def start(self, env_steps: int, per_iteration: int, critic_in_table_units: bool = False) -> None:
         """The weights of a run that starts (or resumes) after `env_steps`: those its last iteration collected
-        with, which its critic fits (a switch due at the next iteration then rescales it as usual)."""
+        with, which a resumed critic fits (a switch due at the next iteration then rescales it as usual). A critic
+        loaded in Table I's units (train.init_from) is scaled to them."""
         self.factors = self.factors_at(max(env_steps - per_iteration, 0))
         self.rewards.reweight(self.factors)
+        if critic_in_table_units and self.heads != ["value"]:
+            self.critic.scale_heads(torch.tensor(self.head_factors()))
 
     def step(self, env_steps: int) -> dict[str, float]:
         """Before an iteration's collection: switch the weights if the schedule says so; each term's factor, for the log."""
         factors = self.factors_at(env_steps)
         if factors != self.factors:
-            change = [factors.get(h.split("/")[0], 1.0) / self.factors.get(h.split("/")[0], 1.0) for h in self.heads]
             if self.heads != ["value"]:
-                self.critic.scale_heads(torch.tensor(change))
+                self.critic.scale_heads(torch.tensor(self.head_factors(factors)) / torch.tensor(self.head_factors()))
             if self.factors == self.early or not factors:  # the fade's start and end, not its every step
                 log.info("reward weights after %d env steps: factors %s (train.early_reward_factor)",
                          env_steps, factors or "none")

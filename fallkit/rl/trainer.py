@@ -115,7 +115,8 @@ class Trainer:
         self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
         if config.resume:
             self._resume(config.resume)
-        self.reward_schedule.start(self.env_steps, self.env.num_envs * tc.num_steps * world_size())
+        loaded = bool(tc.init_from and not config.resume)  # start_from leaves the critic in Table I's units
+        self.reward_schedule.start(self.env_steps, self.env.num_envs * tc.num_steps * world_size(), loaded)
 
     def _resume(self, path: str) -> None:
         """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state."""
@@ -258,6 +259,7 @@ class Trainer:
             "iteration": self.iteration,
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),
+            "head_factors": self.reward_schedule.head_factors(),  # the critic's heads' reward-weight factors
             "ppo": self.ppo.state_dict(),
             "env": self.env.run_state(),
             "observation": self.td.clone(),  # the next collection starts from it, noise included
