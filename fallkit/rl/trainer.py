@@ -115,8 +115,7 @@ class Trainer:
         self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
         if config.resume:
             self._resume(config.resume)
-        loaded = bool(tc.init_from and not config.resume)  # start_from leaves the critic in Table I's units
-        self.reward_schedule.start(self.env_steps, self.env.num_envs * tc.num_steps * world_size(), loaded)
+        self.reward_schedule.start(self.env_steps, self.steps_per_iteration, bool(tc.init_from and not config.resume))
 
     def _resume(self, path: str) -> None:
         """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state."""
@@ -152,9 +151,14 @@ class Trainer:
         return self.rank == 0
 
     @property
+    def steps_per_iteration(self) -> int:
+        """Env steps one iteration collects (all worlds, all ranks)."""
+        return self.env.num_envs * self.config.train.num_steps * world_size()
+
+    @property
     def env_steps(self) -> int:
-        """Env steps collected so far (all worlds, all ranks): the clock of the training schedules."""
-        return self.iteration * self.env.num_envs * self.config.train.num_steps * world_size()
+        """Env steps collected so far: the clock of the training schedules."""
+        return self.iteration * self.steps_per_iteration
 
     def run(self) -> Path:
         """Train until the iteration budget, the time budget or a stop signal; returns the last checkpoint."""
