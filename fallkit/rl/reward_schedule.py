@@ -35,7 +35,10 @@ class RewardSchedule:
     def __init__(self, config: TrainConfig, rewards: RewardSum, critic: ValueNet, heads: list[str]):
         self.early = dict(config.early_reward_factor)
         self.until, self.fade = config.early_until_env_steps, config.early_fade_env_steps
-        self.rewards, self.critic, self.heads = rewards, critic, heads
+        self.rewards, self.critic = rewards, critic
+        # each head's reward term (a head per component is named "<term>/<component>", as RewardSum.columns);
+        # None: one value for the whole return, which has no head to rescale
+        self.head_terms = None if heads == ["value"] else [head.split("/")[0] for head in heads]
         unknown = sorted(set(self.early) - set(rewards.names))
         if unknown:
             raise ConfigError(
@@ -53,7 +56,7 @@ class RewardSchedule:
     def head_factors(self, factors: dict[str, float] | None = None) -> list[float]:
         """Each value head's factor [heads] under `factors` (default: the weights' now)."""
         factors = self.factors if factors is None else factors
-        return [factors.get(head.split("/")[0], 1.0) for head in self.heads]
+        return [factors.get(term, 1.0) for term in self.head_terms or ["value"]]
 
     def start(self, env_steps: int, per_iteration: int, critic_in_table_units: bool = False) -> None:
         """The weights of a run that starts (or resumes) after `env_steps`: those its last iteration collected
@@ -61,14 +64,14 @@ class RewardSchedule:
         loaded in Table I's units (train.init_from) is scaled to them."""
         self.factors = self.factors_at(max(env_steps - per_iteration, 0))
         self.rewards.reweight(self.factors)
-        if critic_in_table_units and self.heads != ["value"]:
+        if critic_in_table_units and self.head_terms:
             self.critic.scale_heads(torch.tensor(self.head_factors()))
 
     def step(self, env_steps: int) -> dict[str, float]:
         """Before an iteration's collection: switch the weights if the schedule says so; each term's factor, for the log."""
         factors = self.factors_at(env_steps)
         if factors != self.factors:
-            if self.heads != ["value"]:
+            if self.head_terms:
                 self.critic.scale_heads(torch.tensor(self.head_factors(factors)) / torch.tensor(self.head_factors()))
             if self.factors == self.early or not factors:  # the fade's start and end, not its every step
                 log.info("reward weights after %d env steps: factors %s (train.early_reward_factor)",
