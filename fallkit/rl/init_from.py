@@ -30,6 +30,7 @@ from fallkit.env.observations import actor_layout, critic_layout
 from fallkit.errors import CheckpointError, ConfigError
 from fallkit.rl.checkpoint import load_checkpoint
 from fallkit.rl.models import RunningNorm, value_net
+from fallkit.rl.reward_schedule import in_table_one_units
 from fallkit.robots.spec import RobotSpec
 
 log = logging.getLogger(__name__)
@@ -70,8 +71,7 @@ def start_from(where: str, actor: nn.Module, critic: nn.Module, config: FallkitC
     for name, net, layout in (("policy", actor, actor_layout), ("critic", critic, critic_layout)):
         index = column_map(layout(spec, *before), layout(spec, *after), f"{say}: the {name} observation")
         columns[name] = _load_net(net, ckpt["actor" if name == "policy" else "critic"], index, name, say)
-    if ckpt.get("head_factors"):  # its heads trained on reweighted terms (train.early_reward_factor): Table I's units
-        value_net(critic).scale_heads(1.0 / torch.tensor(ckpt["head_factors"]))
+    in_table_one_units(value_net(critic), ckpt)
     rate = float(ckpt["ppo"]["learning_rate"]) if "learning_rate" in ckpt.get("ppo", {}) else config.train.ppo.learning_rate
     log.info("networks start from %s (iteration %d); observation columns new to them, at zero weight: %d of the "
              "actor's, %d of the critic's", path, ckpt["iteration"], columns["policy"].numel(), columns["critic"].numel())  # fmt: skip

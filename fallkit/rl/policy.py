@@ -23,6 +23,7 @@ from fallkit.config import FallkitConfig, validate
 from fallkit.errors import CheckpointError
 from fallkit.rl.checkpoint import load_checkpoint
 from fallkit.rl.models import GaussianPolicyNet, ValueNet, joint_prior
+from fallkit.rl.reward_schedule import in_table_one_units
 from fallkit.robots import robot_spec
 from fallkit.robots.spec import RobotSpec
 
@@ -76,6 +77,5 @@ def _critic(ckpt: dict, config: FallkitConfig, device: str | torch.device) -> Va
     net = ValueNet(weights["norm.mean"].shape[0], config.train.critic_hidden, "target.mean" in weights, heads=heads,
                    weight_columns=columns, layer_norm=config.train.critic_layer_norm)  # fmt: skip
     net.load_state_dict(weights)
-    if ckpt.get("head_factors"):  # heads trained on reweighted terms (train.early_reward_factor): Table I's values
-        net.scale_heads(1.0 / torch.tensor(ckpt["head_factors"]))
+    in_table_one_units(net, ckpt)
     return net.to(device).eval()

@@ -28,6 +28,13 @@ from fallkit.rl.models import ValueNet
 log = logging.getLogger(__name__)
 
 
+def in_table_one_units(critic: ValueNet, ckpt: dict) -> None:
+    """A checkpoint's critic, loaded into `critic`, rescaled to Table I's weights: its heads learned the returns of
+    the weights times the checkpoint's `head_factors` (none recorded: nothing to undo)."""
+    if ckpt.get("head_factors"):
+        critic.scale_heads(1.0 / torch.tensor(ckpt["head_factors"]))
+
+
 class RewardSchedule:
     """Sets the env's reward weights for the env steps trained so far, and rescales the critic's heads when
     they change. `heads` are the critic's value heads' names (a term, a term/component, or "value")."""
