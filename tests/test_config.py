@@ -110,6 +110,7 @@ def test_presets_compose_and_change_what_they_say():
     assert gpu.train.max_minutes == 10 and gpu.train.ppo.term_lam == quick.train.ppo.term_lam
     # train=quick for an hour on the same CPU: only the budget and, after 6 M env steps, 4 bigger minibatches differ
     hour = composed("train=hour")
+    assert hour.train.early_reward_factor == quick.train.early_reward_factor == {"orientation": 5}
     assert (hour.sim.num_envs, hour.train.ppo.num_minibatches, hour.train.max_minutes) == (1024, 16, 60)
     assert [hour.train.ppo.minibatches_at(steps) for steps in (0, 5_999_999, 6_000_000)] == [16, 16, 4]
     assert quick.train.ppo.minibatches_at(10**9) == 16  # no schedule: num_minibatches throughout
