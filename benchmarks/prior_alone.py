@@ -22,27 +22,15 @@ import argparse
 import json
 
 import torch
-from hydra import compose, initialize_config_module
-from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModule
 
-from fallkit.app import register_configs
-from fallkit.config import validate
+from fallkit.app import composed_config
 from fallkit.eval.evaluate import draw_trials, evaluate, make_eval_env, prepare
 from fallkit.eval.metrics import summarize_trials
 from fallkit.eval.report import RATIOS, ratios
 from fallkit.eval.rollout import POLICY
 from fallkit.eval.strategies import STRATEGIES
 from fallkit.rl.models import JointPrior
-
-
-def config_for(overrides: list[str]):
-    register_configs()
-    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["train=quick", *overrides])
-    raw = OmegaConf.to_container(cfg, resolve=False)
-    raw.pop("hydra", None)
-    return validate(raw)
 
 
 def main() -> None:
@@ -54,7 +42,7 @@ def main() -> None:
     if any(p <= 0 for p in args.powers):
         raise SystemExit(f"--powers: every power must be > 0 (train.prior_power), got {args.powers}")
     torch.set_num_threads(1)  # the physics threads are MuJoCo's, as in mode=eval
-    config = config_for(args.overrides)
+    config = composed_config("train=quick", *args.overrides)
     config = config.model_copy(update={"eval": config.eval.model_copy(update={"trials": args.trials})})
     setup = prepare(config)
     strategies = [POLICY, *STRATEGIES]

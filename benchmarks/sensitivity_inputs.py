@@ -154,18 +154,9 @@ def p95_reduction_interval(default: Path, changed: Path, component: str = "head"
 
 def fallkit_config(run: Path):
     """The evaluation config of a checkpoint, as `python -m fallkit mode=eval checkpoint=RUN ROBOT` composes it."""
-    from hydra import compose, initialize_config_module
-    from omegaconf import OmegaConf
+    from fallkit.app import composed_config
 
-    from fallkit.app import register_configs
-    from fallkit.config import validate
-
-    register_configs()
-    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["mode=eval", ROBOT, f"checkpoint={run}"])
-    raw = OmegaConf.to_container(cfg, resolve=False)
-    raw.pop("hydra", None)
-    return validate(raw)
+    return composed_config("mode=eval", ROBOT, f"checkpoint={run}")
 
 
 def main() -> None:

@@ -32,12 +32,9 @@ import json
 import time
 
 import torch
-from hydra import compose, initialize_config_module
-from omegaconf import OmegaConf
 from torch.profiler import ProfilerActivity, profile
 
-from fallkit.app import register_configs
-from fallkit.config import validate
+from fallkit.app import composed_config
 from fallkit.rl.monitor import HOST_READ_OPS, host_reads, top_level_ops
 from fallkit.rl.trainer import Trainer
 
@@ -50,14 +47,9 @@ def main() -> None:
     ap.add_argument("overrides", nargs=argparse.REMAINDER, help="-- then config overrides")
     args = ap.parse_args()
     extra = [o for o in args.overrides if o != "--"]
-    register_configs()
-    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["train=quick", f"sim.num_envs={args.envs}", f"train.num_steps={args.steps}", *extra]
-        )
-    raw = OmegaConf.to_container(cfg, resolve=False)
-    raw.pop("hydra", None)
+    config = composed_config("train=quick", f"sim.num_envs={args.envs}", f"train.num_steps={args.steps}", *extra)
     torch.set_num_threads(1)  # as the trainer collects
-    trainer = Trainer(validate(raw), args.out)
+    trainer = Trainer(config, args.out)
     n = args.steps
     trainer.learn(trainer.collect())  # warm: first resets, allocations, the optimizer's state
     t0 = time.perf_counter()

@@ -25,12 +25,9 @@ import os
 import time
 
 import torch
-from hydra import compose, initialize_config_module
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from fallkit.app import register_configs
-from fallkit.config import validate
+from fallkit.app import composed_config
 from fallkit.env.build import make_env
 from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.machine import subnormals_flushed
@@ -45,18 +42,12 @@ from fallkit.sim import make_sim, sim_options
 def config_for(args, envs: int | None):
     """train=quick on the CPU backend; train=default (Table III networks) with sim=warp; envs None:
     the preset's own world count."""
-    register_configs()
     preset = ["train=quick"] if args.backend == "mujoco" else ["train=default", "sim=warp", f"sim.device={args.device}"]
     hidden = ",".join([str(args.hidden)] * 3)
-    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(
-            config_name="config",
-            overrides=[*preset, *([f"sim.num_envs={envs}"] if envs else []), f"train.num_steps={args.steps}",
-                       f"train.actor_hidden=[{hidden}]", f"train.critic_hidden=[{hidden}]", f"train.precision={args.precision}"],
-        )  # fmt: skip
-    raw = OmegaConf.to_container(cfg, resolve=False)
-    raw.pop("hydra", None)
-    return validate(raw)
+    return composed_config(
+        *preset, *([f"sim.num_envs={envs}"] if envs else []), f"train.num_steps={args.steps}",
+        f"train.actor_hidden=[{hidden}]", f"train.critic_hidden=[{hidden}]", f"train.precision={args.precision}",
+    )  # fmt: skip
 
 
 def time_update(config, spec, rewards, dims: tuple[int, int, int], device, precision: str, iterations: int) -> float:

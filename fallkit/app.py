@@ -114,6 +114,15 @@ def check_overrides(argv: list[str]) -> None:
             GlobalHydra.instance().clear()
 
 
+def composed_config(*overrides: str) -> FallkitConfig:
+    """The validated FallkitConfig that `python -m fallkit <overrides>` runs with, without running it
+    (benchmarks, tests and notebooks compose a run's config this way)."""
+    register_configs()
+    raw = OmegaConf.to_container(_compose(list(overrides)), resolve=False)
+    raw.pop("hydra", None)
+    return validate(raw)
+
+
 def _compose(overrides: list[str], hydra_config: bool = False) -> DictConfig:
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):

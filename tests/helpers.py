@@ -21,21 +21,10 @@ def fallkit_cli(*args: str, cwd: Path, timeout: float = 300, **popen) -> subproc
 
 
 def composed_config(*overrides: str):
-    """The validated FallkitConfig that `python -m fallkit <overrides>` would run with."""
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-    from omegaconf import OmegaConf
+    """The validated FallkitConfig that `python -m fallkit <overrides>` would run with (`fallkit.app.composed_config`)."""
+    from fallkit.app import composed_config as compose
 
-    from fallkit.app import register_configs
-    from fallkit.config import validate
-
-    GlobalHydra.instance().clear()
-    register_configs()
-    with initialize_config_module(config_module="fallkit.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=list(overrides))
-    raw = OmegaConf.to_container(cfg, resolve=False)
-    raw.pop("hydra", None)
-    return validate(raw)
+    return compose(*overrides)
 
 
 def host_reads(fn) -> list[str]:
