@@ -25,6 +25,7 @@ import torch
 from tensordict.nn import TensorDictModule
 
 from fallkit.app import composed_config
+from fallkit.errors import FallkitError
 from fallkit.eval.evaluate import draw_trials, evaluate, make_eval_env, prepare
 from fallkit.eval.metrics import summarize_trials
 from fallkit.eval.report import RATIOS, ratios
@@ -34,6 +35,13 @@ from fallkit.rl.models import JointPrior
 
 
 def main() -> None:
+    try:
+        run()
+    except FallkitError as exc:  # a bad override, a robot without end poses …: one line, as the CLI says it
+        raise SystemExit(f"prior_alone.py: error: {exc}") from None
+
+
+def run() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--powers", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
     ap.add_argument("--trials", type=int, default=256)

@@ -116,9 +116,13 @@ def check_overrides(argv: list[str]) -> None:
 
 def composed_config(*overrides: str) -> FallkitConfig:
     """The validated FallkitConfig that `python -m fallkit <overrides>` runs with, without running it
-    (benchmarks, tests and notebooks compose a run's config this way)."""
+    (benchmarks, tests and notebooks compose a run's config this way). A bad override is a ConfigError
+    in the command line's words (`describe_override_error`), not Hydra's traceback."""
     register_configs()
-    raw = OmegaConf.to_container(_compose(list(overrides)), resolve=False)
+    try:
+        raw = OmegaConf.to_container(_compose(list(overrides)), resolve=False)
+    except HydraException as exc:
+        raise ConfigError(describe_override_error(exc)) from None
     raw.pop("hydra", None)
     return validate(raw)
 
