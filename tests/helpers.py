@@ -1,4 +1,4 @@
-"""What several test modules share: the command line, the tiny training sizes, a composed config."""
+"""What several test modules share: the command line, the tiny training sizes, a composed config (fallkit.app's)."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+
+from fallkit.app import composed_config  # noqa: F401  (the tests' composed config: what `python -m fallkit <overrides>` runs with)
 
 # A training small enough for a test: 8 envs × 4 steps, 2 × 16 networks, no evaluation, short falls.
 TINY_RUN = ["train=quick", "sim.num_envs=8", "sim.threads=1", "train.num_steps=4", "train.ppo.num_minibatches=2",
@@ -18,13 +20,6 @@ def fallkit_cli(*args: str, cwd: Path, timeout: float = 300, **popen) -> subproc
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.run([sys.executable, "-m", "fallkit", *args], cwd=cwd, env=env, capture_output=True,
                           text=True, timeout=timeout, **popen)  # fmt: skip
-
-
-def composed_config(*overrides: str):
-    """The validated FallkitConfig that `python -m fallkit <overrides>` would run with (`fallkit.app.composed_config`)."""
-    from fallkit.app import composed_config as compose
-
-    return compose(*overrides)
 
 
 def host_reads(fn) -> list[str]:
