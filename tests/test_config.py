@@ -80,27 +80,29 @@ def test_presets_only_write_values_that_differ_from_the_defaults(option):
 def test_presets_compose_and_change_what_they_say():
     quick = composed("train=quick")
     assert quick.sim.num_envs == 1024 and quick.train.max_minutes == 15 and quick.train.actor_hidden == [256, 256, 256]
-    assert quick.train.ppo.num_minibatches == 16  # the 1536-sample minibatch of 256 worlds, 4x as many
-    with pytest.raises(ConfigError, match=r"num_minibatches=16 leaves fewer than 2 samples per minibatch in a batch "
-                       r"of 24 \(sim.num_envs=1 × train.num_steps=24\): lower train.ppo.num_minibatches"):
+    # 12-step rollouts in 8 minibatches: the 1536-sample minibatch of 256 worlds × 24 steps, twice the updates
+    assert (quick.train.num_steps, quick.train.ppo.num_minibatches) == (12, 8)
+    with pytest.raises(ConfigError, match=r"num_minibatches=8 leaves fewer than 2 samples per minibatch in a batch "
+                       r"of 12 \(sim.num_envs=1 × train.num_steps=12\): lower train.ppo.num_minibatches"):
         composed("train=quick", "sim.num_envs=1")
-    assert composed("train=quick", "sim.num_envs=2").sim.num_envs == 2  # 48 samples: 3 per minibatch
+    assert composed("train=quick", "sim.num_envs=2").sim.num_envs == 2  # 24 samples: 3 per minibatch
     with pytest.raises(ConfigError, match=r"train.ppo.late_num_minibatches=32 leaves fewer than 2 samples per "
-                       r"minibatch in a batch of 48 .* lower train.ppo.late_num_minibatches or raise sim.num_envs"):
+                       r"minibatch in a batch of 24 .* lower train.ppo.late_num_minibatches or raise sim.num_envs"):
         composed("train=quick", "sim.num_envs=2", "train.ppo.late_num_minibatches=32")
     warp = composed("sim=warp")
     assert warp.sim.backend == "warp" and warp.sim.device == "auto" and warp.sim.threads == SimConfig().threads
     # train=quick on a GPU: quick's networks and std, the GPU's 4096 worlds in 4 big minibatches
     gpu = composed("sim=warp", "train=quick_gpu")
-    assert gpu.sim.backend == "warp" and (gpu.sim.num_envs, gpu.train.ppo.num_minibatches) == (4096, 4)
+    assert gpu.sim.backend == "warp" and (gpu.sim.num_envs, gpu.train.num_steps, gpu.train.ppo.num_minibatches) == (4096, 24, 4)
     assert gpu.train.actor_hidden == quick.train.actor_hidden and gpu.train.init_noise_std == quick.train.init_noise_std
     assert gpu.train.max_minutes == 10 and gpu.train.ppo.term_lam == quick.train.ppo.term_lam
-    # train=quick for an hour on the same CPU: only the budget and, after 6 M env steps, 4 bigger minibatches differ
+    # train=quick for an hour on the same CPU, in the 24-step rollouts it was measured with: the budget and,
+    # after 6 M env steps, 4 bigger minibatches differ
     hour = composed("train=hour")
     assert hour.train.early_reward_factor == quick.train.early_reward_factor == {"orientation": 5}
-    assert (hour.sim.num_envs, hour.train.ppo.num_minibatches, hour.train.max_minutes) == (1024, 16, 60)
+    assert (hour.sim.num_envs, hour.train.num_steps, hour.train.ppo.num_minibatches, hour.train.max_minutes) == (1024, 24, 16, 60)
     assert [hour.train.ppo.minibatches_at(steps) for steps in (0, 5_999_999, 6_000_000)] == [16, 16, 4]
-    assert quick.train.ppo.minibatches_at(10**9) == 16  # no schedule: num_minibatches throughout
+    assert quick.train.ppo.minibatches_at(10**9) == 8  # no schedule: num_minibatches throughout
     assert hour.train.actor_hidden == quick.train.actor_hidden and hour.train.ppo.term_lam == quick.train.ppo.term_lam
 
 
