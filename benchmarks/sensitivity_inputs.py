@@ -2,8 +2,8 @@
 a policy trained with `env.sensitivity_inputs.enabled=true`.
 
 Trains biped20 with the battery as its own component, every weight 1.0 (`robot=biped20_battery_baseline`),
-on the battery experiment's CPU budget (`experiment=battery`: train=quick, 224 iterations = 2.75 M env steps, as
-450 of the 256-world train=quick this was first measured with; seed 0), with the
+on the battery experiment's CPU budget (`experiment=battery`'s train=quick iterations, read from the preset: 224 =
+2.75 M env steps, as 450 of the 256-world train=quick this was first measured with; seed 0), with the
 weights drawn per episode; then evaluates the same checkpoint three times on the same 512 falls (test split,
 eval seed): at the robot's weights, with the head at 4x (4.0), and with the battery at 5.0 (the paper's
 battery experiment, one conditioned policy instead of two trained ones). Targets: the head's 95th-percentile
@@ -29,7 +29,7 @@ bootstrap interval. It says whether the conditioned policy's behaviour at 1x, th
                                 # policy of the same budget, and the head at 4x against it at 1x
         [--weighted RUN]        # e.g. experiments/battery/<time>/0_biped20_battery: the battery-5.0 policy
         [--poses FILE]          # pin the end-pose dataset (evaluations read the checkpoint's env.poses)
-        [--minutes M]           # a wall-clock budget instead of 224 iterations
+        [--minutes M]           # a wall-clock budget instead of the battery experiment's iterations
         [--trials N]            # falls per evaluation (default 512; more falls, a tighter p95)
         [-- OVERRIDES…]         # training overrides, e.g. -- train.ppo.normalize_value=true
 
@@ -50,7 +50,7 @@ import torch
 from fallkit_cli import fallkit
 
 ROBOT = "robot=biped20_battery_baseline"
-TRAIN = [ROBOT, "train=quick", "train.iterations=224", "train.max_minutes=null", "eval.trials=512",
+TRAIN = [ROBOT, "train=quick", "train.max_minutes=null", "eval.trials=512",  # iterations: battery_iterations()
          "env.sensitivity_inputs.enabled=true", "seed=0"]  # fmt: skip
 SETTINGS = {"default": [], "head_4x": ["robot.sensitivity.head=4.0"], "battery_5": ["robot.sensitivity.battery=5.0"]}
 
@@ -160,6 +160,13 @@ def fallkit_config(run: Path):
     return composed_config("mode=eval", ROBOT, f"checkpoint={run}")
 
 
+def battery_iterations() -> int:
+    """The battery experiment's training iterations: this benchmark's budget, read from the one preset that sets it."""
+    from fallkit.app import composed_config
+
+    return composed_config("experiment=battery").train.iterations
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="runs/sensitivity_inputs")
@@ -167,7 +174,7 @@ def main() -> None:
     ap.add_argument("--unconditioned", help="run dir of a policy of the same budget without sensitivity inputs")
     ap.add_argument("--weighted", help="run dir of a policy trained with the battery at 5.0 (robot=biped20_battery)")
     ap.add_argument("--poses", help="end-pose dataset to train and evaluate on (env.poses; default: the robot's)")
-    ap.add_argument("--minutes", type=float, help="a wall-clock budget instead of the 224 iterations (train.max_minutes)")
+    ap.add_argument("--minutes", type=float, help="a wall-clock budget instead of the battery experiment's iterations (train.max_minutes)")
     ap.add_argument("--trials", type=int, default=512, help="falls per evaluation (the same falls at every setting)")
     ap.add_argument("overrides", nargs=argparse.REMAINDER,
                     help="-- then training overrides (e.g. train.ppo.normalize_value=true)")
@@ -181,7 +188,8 @@ def main() -> None:
     start = time.perf_counter()
     run = Path(args.checkpoint) if args.checkpoint else out / "train"
     if not args.checkpoint:
-        budget = ["train.iterations=100000", f"train.max_minutes={args.minutes}"] if args.minutes is not None else []
+        budget = (["train.iterations=100000", f"train.max_minutes={args.minutes}"] if args.minutes is not None
+                  else [f"train.iterations={battery_iterations()}"])
         fallkit(*TRAIN, *budget, *([f"env.poses={args.poses}"] if args.poses else []), *extra, f"hydra.run.dir={run}")
     train_s = time.perf_counter() - start
     results = {}
