@@ -69,6 +69,42 @@ def test_the_factor_fades_linearly_to_table_ones_weight_with_the_head_kept_true(
     assert rewards.scale[rewards.columns.index("orientation")].item() == pytest.approx(20 * 0.02)
 
 
+def test_the_schedule_keeps_within_the_runs_budget_and_never_runs_back():
+    """With a share of the budget spent, the position is at least that share of the schedule's length (until + fade):
+    a run that ends before 300 env steps still ends at Table I's weights; a later, smaller reading does not undo it."""
+    from fallkit.config import TrainConfig
+    from fallkit.rl.reward_schedule import RewardSchedule
+
+    rewards = RewardSum(RewardConfig(), dt=0.02)
+    config = TrainConfig(early_reward_factor={"orientation": 5}, early_until_env_steps=100, early_fade_env_steps=200)
+    critic = ValueNet(4, [8], heads=len(rewards.names))
+    schedule = RewardSchedule(config, rewards, critic, list(rewards.names))
+    schedule.start(0, per_iteration=50)
+    assert schedule.step(50, budget_spent=0.5) == {"reward_factor/orientation": 4.0}  # at 150 of 300, not at 50
+    assert schedule.position == 150
+    assert schedule.step(60, budget_spent=0.1) == {"reward_factor/orientation": 4.0}  # never back
+    assert schedule.step(200, budget_spent=0.5)["reward_factor/orientation"] == pytest.approx(3.0)  # env steps lead
+    assert schedule.step(210, budget_spent=1.0) == {"reward_factor/orientation": 1.0} and schedule.factors == {}
+    by_env_steps = RewardSchedule(config.model_copy(update={"early_within_budget": False}), rewards, critic,
+                                  list(rewards.names))  # fmt: skip
+    by_env_steps.start(0, per_iteration=50)
+    assert by_env_steps.step(50, budget_spent=0.9) == {"reward_factor/orientation": 5.0}
+
+
+def test_a_run_shorter_than_the_schedule_fades_within_its_iterations(tmp_path):
+    """4 iterations of 32 env steps against a schedule of 64 + 256: the position is the larger of the env steps and
+    the budget's share of 320 (0, 80, 160, 240 before each iteration), and the checkpoint keeps it for a resume."""
+    from fallkit.rl.checkpoint import load_checkpoint
+    from fallkit.rl.trainer import Trainer
+
+    config = ["train.iterations=4", "++train.early_reward_factor.orientation=5", "train.early_until_env_steps=64",
+              "train.early_fade_env_steps=256"]  # fmt: skip
+    last = Trainer(composed_config(*TINY, *config), tmp_path / "run").run()
+    rows = list(csv.DictReader((tmp_path / "run" / "metrics.csv").open()))
+    assert [float(r["reward_factor/orientation"]) for r in rows] == pytest.approx([5.0, 4.75, 3.5, 2.25])
+    assert load_checkpoint(last)["reward_schedule_position"] == 240
+
+
 def test_the_weights_switch_at_their_env_steps_with_the_critic_rescaled(tmp_path):
     """Iterations 0-1 collect with the orientation weight ×5, 2-3 with Table I's (logged as reward_factor/orientation);
     at the switch the orientation head's predictions fall by 5, the other heads' stay."""

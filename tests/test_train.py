@@ -52,12 +52,16 @@ SELF_IMITATION = ["train.early_reward_factor=null", "train.self_imitation.steps=
 # iteration 2 lies inside the fade
 EARLY_FACTOR = ["++train.early_reward_factor.orientation=5", "train.early_until_env_steps=32",
                 "train.early_fade_env_steps=64"]  # fmt: skip
+# a schedule of 64 + 256 env steps in a 4-iteration run: its position is the budget's share (80 when iteration 2 is
+# saved, 160 at the next), which the checkpoint keeps; the env steps (64) would put it back at x5
+EARLY_IN_BUDGET = ["++train.early_reward_factor.orientation=5", "train.early_until_env_steps=64",
+                   "train.early_fade_env_steps=256"]  # fmt: skip
 
 
 @pytest.mark.parametrize(
     "noise",
-    [[], ["train.noise_correlation_time=0.1"], REPLAY, SELF_IMITATION, EARLY_FACTOR],
-    ids=["white", "correlated", "level-replay", "self-imitation", "early-reward-factor"],
+    [[], ["train.noise_correlation_time=0.1"], REPLAY, SELF_IMITATION, EARLY_FACTOR, EARLY_IN_BUDGET],
+    ids=["white", "correlated", "level-replay", "self-imitation", "early-reward-factor", "early-within-budget"],
 )
 def test_resume_continues_exactly(tmp_path, noise):
     straight = train(tmp_path / "straight", "train.iterations=4", "train.checkpoint_every=2", *noise)

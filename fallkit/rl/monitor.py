@@ -82,6 +82,12 @@ class Progress:
         return time.monotonic() - self.started
 
     @property
+    def spent(self) -> float:
+        """The share of the run's budget gone: of its iterations or of its minutes, whichever ends it first."""
+        share = self.bar.n / self.bar.total if self.bar.total else 0.0
+        return min(1.0, max(share, self.elapsed / self.budget_s if self.budget_s else 0.0))
+
+    @property
     def out_of_time(self) -> bool:
         return self.budget_s is not None and self.elapsed > self.budget_s
 

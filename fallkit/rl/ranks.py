@@ -58,6 +58,13 @@ def mean_over_ranks(x: torch.Tensor) -> torch.Tensor:
     return x / dist.get_world_size()
 
 
+def averaged_over_ranks(value: float, device: torch.device | str = "cpu") -> float:
+    """A figure every rank reads on its own (a clock), averaged: the same on every rank (no-op on one process)."""
+    if not distributed():
+        return value
+    return float(mean_over_ranks(torch.tensor(value, dtype=torch.float64, device=device)))
+
+
 def any_over_ranks(flags: tuple[bool, ...], device: torch.device | str = "cpu") -> tuple[bool, ...]:
     """Each flag true on any rank, on every rank (no-op on one process).
 

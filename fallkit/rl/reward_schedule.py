@@ -12,6 +12,12 @@ it re-fits (what a restart with Table I's weights did), and a switch at once wit
 steering — hence a fade (docs/learning_log.md). One value for the whole return cannot be split that way; it
 re-fits over the next updates. Checkpoints store each head's factor (`head_factors`), so a loaded critic is
 brought to Table I's weights (fallkit.rl.policy, fallkit.rl.init_from).
+
+The schedule's clock is the env steps trained, and, with train.early_within_budget, the share of the run's
+budget spent (iterations or minutes, whichever ends it): its position is the larger of the env steps and that
+share of the schedule's length, and it never runs back. Why: train=quick's 5.5 M env steps are the 15 minutes of
+one CPU; a CPU 1.6x slower reaches 3.5 M, and by env steps alone its run would end at the ×5 weights it was
+meant to leave behind. Checkpoints store the position, so a resumed run continues from it.
 """
 
 from __future__ import annotations
@@ -53,36 +59,49 @@ class RewardSchedule:
                 f"{', '.join(rewards.names)}): name one of them, or drop the key with train.early_reward_factor=null"
             )
         self.factors: dict[str, float] = {}  # what the env's weights carry now ({}: the config's)
+        self.within_budget = config.early_within_budget
+        self.position = 0.0  # where on the schedule the weights are, in env steps; never runs back
 
-    def factors_at(self, env_steps: int) -> dict[str, float]:
-        if env_steps < self.until:
+    def factors_at(self, position: float) -> dict[str, float]:
+        """The factors at `position` env steps into the schedule."""
+        if position < self.until:
             return self.early
-        left = 1.0 - (env_steps - self.until) / self.fade if self.fade else 0.0  # the share of the early factor left
+        left = 1.0 - (position - self.until) / self.fade if self.fade else 0.0  # the share of the early factor left
         return {name: 1.0 + (f - 1.0) * left for name, f in self.early.items()} if left > 0 else {}
+
+    def advance(self, env_steps: int, budget_spent: float = 0.0) -> float:
+        """The schedule's position after `env_steps` env steps with `budget_spent` (0-1) of the run's budget gone."""
+        compressed = budget_spent * (self.until + self.fade) if self.within_budget else 0.0
+        self.position = max(self.position, float(env_steps), compressed)
+        return self.position
 
     def head_factors(self, factors: dict[str, float] | None = None) -> list[float]:
         """Each value head's factor [heads] under `factors` (default: the weights' now)."""
         factors = self.factors if factors is None else factors
         return [factors.get(term, 1.0) for term in self.head_terms or ["value"]]
 
-    def start(self, env_steps: int, per_iteration: int, critic_in_table_units: bool = False) -> None:
+    def start(
+        self, env_steps: int, per_iteration: int, critic_in_table_units: bool = False, position: float | None = None
+    ) -> None:
         """The weights of a run that starts (or resumes) after `env_steps`: those its last iteration collected
-        with, which a resumed critic fits (a switch due at the next iteration then rescales it as usual). A critic
-        loaded in Table I's units (train.init_from) is scaled to them."""
-        self.factors = self.factors_at(max(env_steps - per_iteration, 0))
+        with, which a resumed critic fits (a switch due at the next iteration then rescales it as usual); a
+        resumed checkpoint's `position` says where they were (older checkpoints: by env steps). A critic loaded
+        in Table I's units (train.init_from) is scaled to them."""
+        self.position = float(max(env_steps - per_iteration, 0)) if position is None else position
+        self.factors = self.factors_at(self.position)
         self.rewards.reweight(self.factors)
         if critic_in_table_units and self.head_terms:
             self.critic.scale_heads(torch.tensor(self.head_factors()))
 
-    def step(self, env_steps: int) -> dict[str, float]:
+    def step(self, env_steps: int, budget_spent: float = 0.0) -> dict[str, float]:
         """Before an iteration's collection: switch the weights if the schedule says so; each term's factor, for the log."""
-        factors = self.factors_at(env_steps)
+        factors = self.factors_at(self.advance(env_steps, budget_spent))
         if factors != self.factors:
             if self.head_terms:
                 self.critic.scale_heads(torch.tensor(self.head_factors(factors)) / torch.tensor(self.head_factors()))
             if self.factors == self.early or not factors:  # the fade's start and end, not its every step
-                log.info("reward weights after %d env steps: factors %s (train.early_reward_factor)",
-                         env_steps, factors or "none")
+                log.info("reward weights after %d env steps (the schedule at %d): factors %s (train.early_reward_factor)",
+                         env_steps, self.position, factors or "none")
             self.factors = factors
             self.rewards.reweight(factors)
         return {f"reward_factor/{name}": self.factors.get(name, 1.0) for name in self.early}

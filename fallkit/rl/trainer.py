@@ -41,7 +41,7 @@ from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO
-from fallkit.rl.ranks import any_over_ranks, check_ranks_in_sync, distributed, init_distributed, merge_over_ranks, world_size
+from fallkit.rl.ranks import any_over_ranks, averaged_over_ranks, check_ranks_in_sync, distributed, init_distributed, merge_over_ranks, world_size
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.reward_schedule import RewardSchedule
 from fallkit.rl.self_imitation import make_self_imitation
@@ -113,9 +113,12 @@ class Trainer:
         self.impacts = EpisodeImpacts(self.env)
         self.stopped: str | None = None  # the signal that stopped the run, if one did
         self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
+        self._schedule_position: float | None = None  # the reward schedule's, from a resumed checkpoint
         if config.resume:
             self._resume(config.resume)
-        self.reward_schedule.start(self.env_steps, self.steps_per_iteration, bool(tc.init_from and not config.resume))
+        self.reward_schedule.start(
+            self.env_steps, self.steps_per_iteration, bool(tc.init_from and not config.resume), self._schedule_position
+        )
 
     def _resume(self, path: str) -> None:
         """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state."""
@@ -123,6 +126,7 @@ class Trainer:
         self.load_state_dict(ckpt)
         self.start = self.iteration
         self.resumed_from = checkpoint_run_dir(ckpt["path"])
+        self._schedule_position = ckpt.get("reward_schedule_position")  # None: a checkpoint from before it was kept
         if self.main_rank:
             target = self.config.train.iterations
             print(f"resumed from {ckpt['path']} at iteration {self.iteration}; training to {target}")
@@ -167,7 +171,7 @@ class Trainer:
         progress = Progress(tc.iterations, self.iteration, tc.max_minutes, self.main_rank)
         try:
             while self.iteration < tc.iterations:
-                stats = self.iterate()
+                stats = self.iterate(averaged_over_ranks(progress.spent, self.env.device))  # clocks differ
                 metrics.log(self.iteration, stats)
                 finite = math.isfinite(stats["loss_objective"]) and math.isfinite(stats["loss_critic"])
                 # every rank stops at the same iteration, whichever rank's reason it was
@@ -190,11 +194,12 @@ class Trainer:
 
     # ---- the steps of one iteration ---------------------------------------------------
 
-    def iterate(self) -> dict[str, float]:
+    def iterate(self, budget_spent: float = 0.0) -> dict[str, float]:
         """Collect, learn, and the iteration's figures, read from the device once (a read waits for
-        the device's queue: once per iteration, after the update, so `update_s` is its real time)."""
+        the device's queue: once per iteration, after the update, so `update_s` is its real time).
+        `budget_spent`: the share (0-1) of the run's iterations or minutes gone, for the reward schedule."""
         t0 = time.perf_counter()
-        factors = self.reward_schedule.step(self.env_steps)
+        factors = self.reward_schedule.step(self.env_steps, budget_spent)
         batch = self.collect()
         t1 = time.perf_counter()
         stats = self.learn(batch) | self.diagnostics(batch)
@@ -264,6 +269,7 @@ class Trainer:
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),
             "head_factors": self.reward_schedule.head_factors(),  # the critic's heads' reward-weight factors
+            "reward_schedule_position": self.reward_schedule.position,
             "ppo": self.ppo.state_dict(),
             "env": self.env.run_state(),
             "observation": self.td.clone(),  # the next collection starts from it, noise included
