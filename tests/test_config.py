@@ -82,6 +82,7 @@ def test_presets_compose_and_change_what_they_say():
     assert quick.sim.num_envs == 1024 and quick.train.max_minutes == 15 and quick.train.actor_hidden == [256, 256, 256]
     # 12-step rollouts in 8 minibatches: the 1536-sample minibatch of 256 worlds × 24 steps, twice the updates
     assert (quick.train.num_steps, quick.train.ppo.num_minibatches) == (12, 8)
+    assert quick.train.critic_hidden == [128, 128, 128]  # the update's larger half, halved in width
     with pytest.raises(ConfigError, match=r"num_minibatches=8 leaves fewer than 2 samples per minibatch in a batch "
                        r"of 12 \(sim.num_envs=1 × train.num_steps=12\): lower train.ppo.num_minibatches"):
         composed("train=quick", "sim.num_envs=1")
@@ -104,6 +105,7 @@ def test_presets_compose_and_change_what_they_say():
     assert [hour.train.ppo.minibatches_at(steps) for steps in (0, 5_999_999, 6_000_000)] == [16, 16, 4]
     assert quick.train.ppo.minibatches_at(10**9) == 8  # no schedule: num_minibatches throughout
     assert hour.train.actor_hidden == quick.train.actor_hidden and hour.train.ppo.term_lam == quick.train.ppo.term_lam
+    assert hour.train.critic_hidden == gpu.train.critic_hidden == [256, 256, 256]  # as each was measured
 
 
 def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():
