@@ -76,7 +76,8 @@ def test_the_schedule_keeps_within_the_runs_budget_and_never_runs_back():
     from fallkit.rl.reward_schedule import RewardSchedule
 
     rewards = RewardSum(RewardConfig(), dt=0.02)
-    config = TrainConfig(early_reward_factor={"orientation": 5}, early_until_env_steps=100, early_fade_env_steps=200)
+    config = TrainConfig(early_reward_factor={"orientation": 5}, early_until_env_steps=100, early_fade_env_steps=200,
+                         early_within_budget=True)  # fmt: skip
     critic = ValueNet(4, [8], heads=len(rewards.names))
     schedule = RewardSchedule(config, rewards, critic, list(rewards.names))
     schedule.start(0, per_iteration=50)
@@ -98,11 +99,15 @@ def test_a_run_shorter_than_the_schedule_fades_within_its_iterations(tmp_path):
     from fallkit.rl.trainer import Trainer
 
     config = ["train.iterations=4", "++train.early_reward_factor.orientation=5", "train.early_until_env_steps=64",
-              "train.early_fade_env_steps=256"]  # fmt: skip
+              "train.early_fade_env_steps=256", "train.early_within_budget=true"]  # fmt: skip
     last = Trainer(composed_config(*TINY, *config), tmp_path / "run").run()
     rows = list(csv.DictReader((tmp_path / "run" / "metrics.csv").open()))
     assert [float(r["reward_factor/orientation"]) for r in rows] == pytest.approx([5.0, 4.75, 3.5, 2.25])
     assert load_checkpoint(last)["reward_schedule_position"] == 240
+    # the default: by env steps alone, x5 until 64
+    Trainer(composed_config(*TINY, *config[:-1]), tmp_path / "by_env_steps").run()
+    rows = list(csv.DictReader((tmp_path / "by_env_steps" / "metrics.csv").open()))
+    assert [float(r["reward_factor/orientation"]) for r in rows] == pytest.approx([5.0, 5.0, 5.0, 4.5])
 
 
 def test_the_weights_switch_at_their_env_steps_with_the_critic_rescaled(tmp_path):

@@ -55,7 +55,7 @@ EARLY_FACTOR = ["++train.early_reward_factor.orientation=5", "train.early_until_
 # a schedule of 64 + 256 env steps in a 4-iteration run: its position is the budget's share (80 when iteration 2 is
 # saved, 160 at the next), which the checkpoint keeps; the env steps (64) would put it back at x5
 EARLY_IN_BUDGET = ["++train.early_reward_factor.orientation=5", "train.early_until_env_steps=64",
-                   "train.early_fade_env_steps=256"]  # fmt: skip
+                   "train.early_fade_env_steps=256", "train.early_within_budget=true"]  # fmt: skip
 
 
 @pytest.mark.parametrize(

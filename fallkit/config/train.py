@@ -351,10 +351,11 @@ class TrainConfig(Section):
         "which undid the steering the early factor bought (docs/learning_log.md)",
     )
     early_within_budget: bool = Field(
-        True,
-        description="where the run's budget (train.iterations or train.max_minutes, whichever ends it) ends before "
-        "early_until_env_steps + early_fade_env_steps, the schedule is compressed to end with it: the policy a run "
-        "ends with was trained at Table I's weights on a slower machine too; false = by env steps alone",
+        False,
+        description="true: where the run's budget (train.iterations or train.max_minutes, whichever ends it) ends "
+        "before early_until_env_steps + early_fade_env_steps, the schedule is compressed to end with it, so a run "
+        "ends at Table I's weights on a slower machine too (there: lower max impact, higher MROE, docs/training.md); "
+        "false = by env steps alone",
     )
     teachers: TeachersConfig = Field(default_factory=TeachersConfig)
     ppo: PPOConfig = Field(default_factory=PPOConfig)
