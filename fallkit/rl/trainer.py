@@ -41,7 +41,9 @@ from fallkit.rl.init_from import fresh_statistics, start_from
 from fallkit.rl.models import joint_prior, make_actor, policy_net, resolve_precision, value_net
 from fallkit.rl.monitor import EpisodeImpacts, MetricsLog, Progress, StopFlag
 from fallkit.rl.ppo import PPO
-from fallkit.rl.ranks import any_over_ranks, averaged_over_ranks, check_ranks_in_sync, distributed, init_distributed, merge_over_ranks, world_size
+from fallkit.rl.ranks import (
+    any_over_ranks, averaged_over_ranks, check_ranks_in_sync, distributed, init_distributed, merge_over_ranks, world_size
+)
 from fallkit.rl.relabel import EndPoseRelabel, SensitivityRelabel
 from fallkit.rl.reward_schedule import RewardSchedule
 from fallkit.rl.self_imitation import make_self_imitation
@@ -113,23 +115,21 @@ class Trainer:
         self.impacts = EpisodeImpacts(self.env)
         self.stopped: str | None = None  # the signal that stopped the run, if one did
         self.resumed_from: Path | None = None  # the run directory of the checkpoint resumed
-        self._schedule_position: float | None = None  # the reward schedule's, from a resumed checkpoint
-        if config.resume:
-            self._resume(config.resume)
-        self.reward_schedule.start(
-            self.env_steps, self.steps_per_iteration, bool(tc.init_from and not config.resume), self._schedule_position
-        )
+        position = self._resume(config.resume) if config.resume else None  # the reward schedule's, where kept
+        in_table_units = bool(tc.init_from and not config.resume)
+        self.reward_schedule.start(self.env_steps, self.steps_per_iteration, in_table_units, position)
 
-    def _resume(self, path: str) -> None:
-        """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state."""
+    def _resume(self, path: str) -> float | None:
+        """Continue the checkpoint at `path` (config.resume): its iteration, weights, optimiser and env state;
+        returns the reward schedule's position it kept (None: a checkpoint from before it was kept)."""
         ckpt = load_checkpoint(path, map_location=self.env.device)
         self.load_state_dict(ckpt)
         self.start = self.iteration
         self.resumed_from = checkpoint_run_dir(ckpt["path"])
-        self._schedule_position = ckpt.get("reward_schedule_position")  # None: a checkpoint from before it was kept
         if self.main_rank:
             target = self.config.train.iterations
             print(f"resumed from {ckpt['path']} at iteration {self.iteration}; training to {target}")
+        return ckpt.get("reward_schedule_position")
 
     def _make_ppo(self, mirror: ObservationMirror | None) -> PPO:
         """PPO over this run's actor and critic, with the learning aids the config switches on."""
