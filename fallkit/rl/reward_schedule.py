@@ -61,7 +61,7 @@ class RewardSchedule:
                 f"{', '.join(rewards.names)}): name one of them, or drop the key with train.early_reward_factor=null"
             )
         self.factors: dict[str, float] = {}  # what the env's weights carry now ({}: the config's)
-        self.within_budget = config.early_within_budget
+        self.within_budget = config.early_within_budget and bool(self.early)  # does it read the budget's share
         self.position = 0.0  # where on the schedule the weights are, in env steps; never runs back
 
     def factors_at(self, position: float) -> dict[str, float]:

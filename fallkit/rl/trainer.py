@@ -171,7 +171,9 @@ class Trainer:
         progress = Progress(tc.iterations, self.iteration, tc.max_minutes, self.main_rank)
         try:
             while self.iteration < tc.iterations:
-                stats = self.iterate(averaged_over_ranks(progress.spent, self.env.device))  # clocks differ
+                # the budget's share spent, for the reward schedule where it counts it (the ranks' clocks differ)
+                spent = averaged_over_ranks(progress.spent, self.env.device) if self.reward_schedule.within_budget else 0.0
+                stats = self.iterate(spent)
                 metrics.log(self.iteration, stats)
                 finite = math.isfinite(stats["loss_objective"]) and math.isfinite(stats["loss_critic"])
                 # every rank stops at the same iteration, whichever rank's reason it was
