@@ -44,6 +44,14 @@ class PPOConfig(Section):
     gamma: float = Field(0.99, gt=0, le=1)
     lam: float = Field(0.95, ge=0, le=1)
     desired_kl: float | None = Field(0.01, gt=0, description="null = fixed learning rate")
+    kl_stop: float | None = Field(
+        None,
+        gt=1,
+        description="the actor's steps end for the rest of an update at the first minibatch whose KL to the "
+        "collecting policy exceeds kl_stop × desired_kl, its rate kept where they ended; the critic's steps go on. "
+        "Without it the KL rule takes the rest at lr_min, and the next update climbs back from there (fallkit.rl.ppo); "
+        "null = every minibatch steps both (rsl_rl, the paper). Reads the KL on the host at every minibatch",
+    )
     learning_rate: float = Field(1e-3, gt=0)
     lr_min: float = Field(1e-5, gt=0)
     lr_max: float = Field(1e-2, gt=0)
@@ -141,6 +149,11 @@ class PPOConfig(Section):
             raise ValueError(
                 f"train.ppo.learning_rate={self.learning_rate:g} must lie in [lr_min, lr_max] = "
                 f"[{self.lr_min:g}, {self.lr_max:g}], the range of the KL-adaptive rate: change one of the three"
+            )
+        if self.kl_stop is not None and self.desired_kl is None:
+            raise ValueError(
+                f"train.ppo.kl_stop={self.kl_stop:g} is a multiple of desired_kl, which is null (a fixed rate): "
+                "set train.ppo.desired_kl or drop kl_stop"
             )
         return self
 

@@ -15,7 +15,11 @@ One call of `PPO.update(batch)` is one iteration's learning:
      The KL reads the policy's outputs from the loss's own forward pass (a forward hook,
      `_ActorOutputs`): the same weights and samples as a second pass would see, at no cost.
      The rule decides on the device (`fallkit.rl.optimizer`: a tensor rate, fused Adam): the update reads
-     nothing back to the host; its figures are returned as device tensors.
+     nothing back to the host; its figures are returned as device tensors. With `kl_stop`, the actor's steps
+     end at the first minibatch whose KL passes kl_stop × desired_kl and the critic steps on alone (the KL is
+     then read on the host at every minibatch): without it, the rule would take the update's remaining
+     steps at lr_min — measured in `train=quick`, 25 of its 40 — where the policy hardly moves, and the next
+     update would spend its first ~6 climbing back from lr_min. `actor_step_share` logs the actor's share.
   4. With `normalize_value`, the value targets join the critic's running target statistics
      first (its outputs preserved, `ValueNet.update_target_statistics`) and the value loss is
      taken in those units, so its gradients are O(1) whatever the scale of the returns.
@@ -177,27 +181,24 @@ class PPO:
         # + the aids' (below); learning_rate_mean: the actor's rate averaged over the update's steps. The rule
         # moves it at every minibatch, so `learning_rate` (the rate after the last one) can sit at lr_min while
         # most steps were taken at several times that
-        names = ["loss_objective", "loss_critic", "loss_entropy", "kl", "clip_fraction", "learning_rate_mean"]
-        sums = 0.0  # read once, after the last minibatch
+        sums, critic_loss_sum = 0.0, 0.0  # the actor's minibatches' figures and every minibatch's value loss
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
-        count = 0
+        count = actor_count = 0
+        actor_stepping = True  # until train.ppo.kl_stop ends the actor's steps for this update
         # every epoch's shuffle in one copy to the device (a copy waits for the device's queue)
         perms = torch.stack([torch.randperm(n, generator=generator) for _ in range(cfg.epochs)]).to(flat.device)
         for perm in perms:
             for k in range(minibatches):
                 rows = perm[k * mb : (k + 1) * mb]
                 data, unmirrored = self._minibatch(flat, flat_image, rows)
-                old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
-                out = self.loss(data)
-                loss, loss_critic = _total_loss(out, critic_net)
-                aid_loss, aids = self._learning_aids(flat, rows, mb, unmirrored)
-                loss = loss + aid_loss
-                # KL of this minibatch between the collecting policy and the current one, from the
-                # loss's forward pass (the collected samples only, even with the mirror or the relabelled
-                # copy: only they were drawn from the collecting policy at their inputs), before this step
-                loc, scale = self.actor_outputs.loc[:mb], self.actor_outputs.scale[:mb]
-                kl = mean_over_ranks(gaussian_kl(old_loc, old_scale, loc, scale))
-                self.optimizer.adapt(kl)
+                if actor_stepping:
+                    loss, loss_critic, figures, actor_stepping = self._actor_and_critic_loss(
+                        flat, data, rows, mb, unmirrored, critic_net
+                    )
+                    sums = sums + torch.stack([f.detach().to(flat.device, torch.float32) for f in figures.values()])
+                    actor_count += 1
+                else:  # the critic alone: no actor pass, the costlier half of a step on a CPU
+                    loss = loss_critic = _critic_loss(self.loss.loss_critic(data)[0], critic_net)
 
                 self.optimizer.zero_grad()
                 loss.backward()
@@ -209,22 +210,45 @@ class PPO:
                 else:
                     torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.optimizer.step()
-
-                figures = [
-                    out["loss_objective"].mean(),
-                    loss_critic,
-                    out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
-                    kl,
-                    out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
-                    self.optimizer.learning_rate,  # the rate this step was taken at
-                    *aids.values(),
-                ]
-                sums = sums + torch.stack([f.detach().to(flat.device, torch.float32) for f in figures])
+                critic_loss_sum = critic_loss_sum + loss_critic.detach()
                 count += 1
-        stats = dict(zip(names + list(aids), sums / count)) | advantage_stats
-        stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms / count
+        stats = dict(zip(figures, sums / actor_count)) | advantage_stats  # the first minibatch steps the actor
+        stats["loss_critic"] = critic_loss_sum / count
+        stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms[0] / actor_count, grad_norms[1] / count
+        stats["actor_step_share"] = torch.tensor(actor_count / count, device=flat.device)  # < 1 only with kl_stop
         stats["num_minibatches"] = torch.tensor(float(minibatches), device=flat.device)
         return stats | self._state_stats(policy_net(self.actor), critic_net)
+
+    def _actor_and_critic_loss(
+        self, flat: TensorDict, data: TensorDict, rows: torch.Tensor, mb: int, unmirrored: int, critic_net
+    ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor], bool]:
+        """One minibatch's loss for both networks, its value loss, the figures it logs, and whether the actor
+        steps on after it. The KL rule adapts the rate first; a KL past train.ppo.kl_stop × desired_kl leaves
+        only the value loss to step on (this minibatch's actor step is the one the KL forbids) and ends the
+        actor's steps for the update — the steps the rule would take at lr_min move the policy little, and the
+        rate it keeps starts the next update where this one's steps were useful, not at lr_min."""
+        cfg = self.cfg
+        old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
+        out = self.loss(data)
+        loss, loss_critic = _total_loss(out, critic_net)
+        aid_loss, aids = self._learning_aids(flat, rows, mb, unmirrored)
+        loss = loss + aid_loss
+        # KL of this minibatch between the collecting policy and the current one, from the loss's forward
+        # pass (the collected samples only, even with the mirror or the relabelled copy: only they were
+        # drawn from the collecting policy at their inputs), before this step
+        loc, scale = self.actor_outputs.loc[:mb], self.actor_outputs.scale[:mb]
+        kl = mean_over_ranks(gaussian_kl(old_loc, old_scale, loc, scale))
+        self.optimizer.adapt(kl)
+        # the same KL on every rank (averaged above), so every rank stops at the same minibatch
+        stepping = cfg.kl_stop is None or float(kl) <= cfg.kl_stop * cfg.desired_kl
+        figures = {
+            "loss_objective": out["loss_objective"].mean(),
+            "loss_entropy": out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
+            "kl": kl,
+            "clip_fraction": out["clip_fraction"] if "clip_fraction" in out.keys() else torch.zeros(()),
+            "learning_rate_mean": self.optimizer.learning_rate,  # the rate this step was taken at
+        } | aids
+        return (loss if stepping else loss_critic), loss_critic, figures, stepping
 
     def _learning_aids(
         self, flat: TensorDict, rows: torch.Tensor, mb: int, unmirrored: int
@@ -384,11 +408,16 @@ def _total_loss(out: TensorDict, critic_net) -> tuple[torch.Tensor, torch.Tensor
     """(surrogate + value loss + entropy term, the value loss), each the mean of the loss module's
     per-sample terms: the value loss in units of the value targets' statistics where the critic
     normalises them (train.ppo.normalize_value), each value head's in its own."""
-    loss_critic = out["loss_critic"]
-    if critic_net.target is not None:
-        loss_critic = loss_critic / critic_net.target_std().square()
-    loss_critic = loss_critic.mean()
+    loss_critic = _critic_loss(out["loss_critic"], critic_net)
     loss = out["loss_objective"].mean() + loss_critic
     if "loss_entropy" in out.keys():
         loss = loss + out["loss_entropy"].mean()
     return loss, loss_critic
+
+
+def _critic_loss(per_sample: torch.Tensor, critic_net) -> torch.Tensor:
+    """The mean of the loss module's per-sample value losses, each value head's in units of its own targets'
+    statistics where the critic normalises them (train.ppo.normalize_value)."""
+    if critic_net.target is not None:
+        per_sample = per_sample / critic_net.target_std().square()
+    return per_sample.mean()
