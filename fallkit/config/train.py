@@ -52,6 +52,12 @@ class PPOConfig(Section):
         "Without it the KL rule takes the rest at lr_min, and the next update climbs back from there (fallkit.rl.ppo); "
         "null = every minibatch steps both (rsl_rl, the paper). Reads the KL on the host at every minibatch",
     )
+    kl_stop_rate: Literal["kept", "lr_min"] = Field(
+        "kept",
+        description="with kl_stop, the actor's rate after its steps end: kept where the rule left it (the next update "
+        "starts there), or lr_min, where the rule's remaining steps would have taken it (the next update climbs back "
+        "from there, as without kl_stop)",
+    )
     learning_rate: float = Field(1e-3, gt=0)
     lr_min: float = Field(1e-5, gt=0)
     lr_max: float = Field(1e-2, gt=0)

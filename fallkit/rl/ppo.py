@@ -241,6 +241,8 @@ class PPO:
         self.optimizer.adapt(kl)
         # the same KL on every rank (averaged above), so every rank stops at the same minibatch
         stepping = cfg.kl_stop is None or float(kl) <= cfg.kl_stop * cfg.desired_kl
+        if not stepping and cfg.kl_stop_rate == "lr_min":
+            self.optimizer.start_at(cfg.lr_min)
         figures = {
             "loss_objective": out["loss_objective"].mean(),
             "loss_entropy": out["loss_entropy"].mean() if "loss_entropy" in out.keys() else torch.zeros(()),
