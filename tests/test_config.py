@@ -106,6 +106,7 @@ def test_presets_compose_and_change_what_they_say():
     assert quick.train.ppo.minibatches_at(10**9) == 8  # no schedule: num_minibatches throughout
     assert hour.train.actor_hidden == quick.train.actor_hidden and hour.train.ppo.term_lam == quick.train.ppo.term_lam
     assert hour.train.critic_hidden == gpu.train.critic_hidden == [256, 256, 256]  # as each was measured
+    assert quick.train.ppo.kl_stop == 2 and hour.train.ppo.kl_stop is gpu.train.ppo.kl_stop is None
 
 
 def test_train_paper_is_the_papers_setting_and_seek_needs_the_clock():

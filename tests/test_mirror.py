@@ -20,7 +20,7 @@ from fallkit.env.samplers.initial_state import InitialStateSampler
 from fallkit.errors import ConfigError
 from fallkit.poses.end_pose_set import EndPoseSet, random_end_poses
 from fallkit.rl.models import GaussianPolicyNet, JointPrior
-from fallkit.rl.ppo import mirror_error
+from fallkit.rl.mirror_samples import mirror_error
 from fallkit.robots.mirror import mirror_name
 from fallkit.robots.spec import ComponentSpec, JointSpec, make_robot_spec
 from fallkit.sim import make_sim

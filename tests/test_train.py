@@ -346,6 +346,47 @@ def test_gradients_are_clipped_over_both_networks_or_each_by_its_own_norm(tmp_pa
         assert (actor < 0.999e-3).all() and (critic < 0.999e-3).all()
 
 
+@pytest.mark.parametrize("kl_stop", [None, 2.0])
+def test_kl_stop_ends_the_actors_steps_and_the_critic_steps_on(tmp_path, kl_stop):
+    """train.ppo.kl_stop: at the first minibatch whose KL passes kl_stop × desired_kl the actor takes no more
+    steps in the update — its weights stay as they were before that minibatch — while the critic takes every
+    step; the rate is lr_min, where the rule's remaining steps would have taken it, and `actor_step_share`
+    logs the actor's share. Without it both networks take every step. Without desired_kl: a one-line error."""
+    from fallkit.errors import ConfigError
+    from fallkit.rl import ppo as ppo_module
+
+    from fallkit.rl.trainer import Trainer
+
+    trainer = Trainer(tiny_config(), tmp_path / "run")
+    trainer.td = trainer.env.reset()
+    batch = trainer.collect()
+    # a KL limit of 2e-6: the first minibatch (KL 0) steps, the second one's KL passes it
+    cfg = trainer.config.train.ppo.model_copy(update={"kl_stop": kl_stop, "desired_kl": 1e-6, "epochs": 3})
+    ppo = ppo_module.PPO(trainer.actor, trainer.critic, cfg, rewards=trainer.env.rewards)
+    actor_params, critic_params = (ppo.optimizer.param_groups[k]["params"] for k in (0, 1))
+    steps = []  # per optimizer step: (actor stepped, critic stepped, the actor's weights before the step)
+
+    def record(optimizer, args, kwargs):
+        stepped = [all(p.grad is not None for p in params) for params in (actor_params, critic_params)]
+        steps.append((*stepped, [p.detach().clone() for p in actor_params]))
+
+    ppo.optimizer.optimizer.register_step_pre_hook(record)
+    stats = ppo.update(batch.clone(), generator=torch.Generator().manual_seed(0))
+    count = cfg.epochs * cfg.num_minibatches
+    assert len(steps) == count and all(critic for _, critic, _ in steps)
+    actor_steps = sum(actor for actor, _, _ in steps)
+    assert stats["actor_step_share"].item() == pytest.approx(actor_steps / count)
+    if kl_stop is None:
+        assert actor_steps == count
+        return
+    assert [actor for actor, _, _ in steps] == [True] + [False] * (count - 1)
+    for before, after in zip(steps[1][2], actor_params):  # the weights after the first step are the update's
+        assert torch.equal(before, after)
+    assert ppo.optimizer.learning_rate.item() == cfg.lr_min  # where the rule's remaining steps would take it
+    with pytest.raises(ConfigError, match="train.ppo.kl_stop=2 is a multiple of desired_kl, which is null"):
+        tiny_config("train.ppo.kl_stop=2", "train.ppo.desired_kl=null")
+
+
 def _reads_by_fallkit(fn) -> list[str]:
     """The host reads that fallkit's own code makes while `fn` runs."""
     return [read for read in host_reads(fn) if f"{os.sep}fallkit{os.sep}" in read]
@@ -354,10 +395,11 @@ def _reads_by_fallkit(fn) -> list[str]:
 def test_the_update_and_the_logged_figures_read_nothing_back_per_minibatch(tmp_path):
     """On a GPU every read of a device value waits for the launch queue. The PPO update (the KL rule
     included: a tensor learning rate), the episode statistics and the logged figures stay on the
-    device; `Trainer.iterate` reads them once per iteration (one `.tolist()`) and returns floats."""
+    device; `Trainer.iterate` reads them once per iteration (one `.tolist()`) and returns floats. Without
+    train.ppo.kl_stop, which reads the KL at every minibatch by design (train=quick's; off in train=quick_gpu)."""
     from fallkit.rl.trainer import Trainer
 
-    trainer = Trainer(tiny_config(), tmp_path / "run")
+    trainer = Trainer(tiny_config("train.ppo.kl_stop=null"), tmp_path / "run")
     trainer.td = trainer._first_observation()  # staggered clocks: episodes end and restart within a batch
     batch = trainer.collect()
     assert _reads_by_fallkit(lambda: trainer.learn(batch)) == []

@@ -45,18 +45,10 @@ class PPOConfig(Section):
     lam: float = Field(0.95, ge=0, le=1)
     desired_kl: float | None = Field(0.01, gt=0, description="null = fixed learning rate")
     kl_stop: float | None = Field(
-        None,
-        gt=1,
-        description="the actor's steps end for the rest of an update at the first minibatch whose KL to the "
-        "collecting policy exceeds kl_stop × desired_kl, its rate kept where they ended; the critic's steps go on. "
-        "Without it the KL rule takes the rest at lr_min, and the next update climbs back from there (fallkit.rl.ppo); "
-        "null = every minibatch steps both (rsl_rl, the paper). Reads the KL on the host at every minibatch",
-    )
-    kl_stop_rate: Literal["kept", "lr_min"] = Field(
-        "kept",
-        description="with kl_stop, the actor's rate after its steps end: kept where the rule left it (the next update "
-        "starts there), or lr_min, where the rule's remaining steps would have taken it (the next update climbs back "
-        "from there, as without kl_stop)",
+        None, gt=1, description="the actor's steps end for the rest of an update at the first minibatch whose KL to "
+        "the collecting policy passes kl_stop × desired_kl, its rate set to lr_min, where the rule's remaining steps "
+        "would take it (and the policy hardly moves); the critic's steps go on (fallkit.rl.ppo). null = every "
+        "minibatch steps both (rsl_rl, the paper). Reads the KL on the host at every minibatch",
     )
     learning_rate: float = Field(1e-3, gt=0)
     lr_min: float = Field(1e-5, gt=0)

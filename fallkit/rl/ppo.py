@@ -16,10 +16,10 @@ One call of `PPO.update(batch)` is one iteration's learning:
      `_ActorOutputs`): the same weights and samples as a second pass would see, at no cost.
      The rule decides on the device (`fallkit.rl.optimizer`: a tensor rate, fused Adam): the update reads
      nothing back to the host; its figures are returned as device tensors. With `kl_stop`, the actor's steps
-     end at the first minibatch whose KL passes kl_stop × desired_kl and the critic steps on alone (the KL is
-     then read on the host at every minibatch): without it, the rule would take the update's remaining
-     steps at lr_min — measured in `train=quick`, 25 of its 40 — where the policy hardly moves, and the next
-     update would spend its first ~6 climbing back from lr_min. `actor_step_share` logs the actor's share.
+     end at the first minibatch whose KL passes kl_stop × desired_kl, its rate set to lr_min, and the critic
+     steps on alone (the KL is then read on the host at every minibatch): without it, the rule takes the
+     update's remaining steps at lr_min — in `train=quick`, 25 of its 40 — where the policy hardly moves.
+     `actor_step_share` logs the actor's share of the steps.
   4. With `normalize_value`, the value targets join the critic's running target statistics
      first (its outputs preserved, `ValueNet.update_target_statistics`) and the value loss is
      taken in those units, so its gradients are O(1) whatever the scale of the returns.
@@ -71,6 +71,7 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 from fallkit.config import PPOConfig
 from fallkit.env.mirror import ObservationMirror
 from fallkit.env.rewards.context import RewardSum
+from fallkit.rl.mirror_samples import mirror_error, with_mirror_image
 from fallkit.rl.models import GaussianPolicyNet, policy_net, value_net
 from fallkit.rl.optimizer import AdaptiveAdam
 from fallkit.rl.ranks import average_gradients, mean_over_ranks, merge_over_ranks
@@ -84,16 +85,6 @@ def gaussian_kl(loc_old: torch.Tensor, scale_old: torch.Tensor, loc: torch.Tenso
     """Mean over the batch of KL(old ‖ new) for diagonal Gaussians."""
     kl = torch.log(scale / scale_old) + (scale_old.square() + (loc_old - loc).square()) / (2.0 * scale.square()) - 0.5
     return kl.sum(-1).mean()
-
-
-def mirror_error(mirror: ObservationMirror, loc: torch.Tensor, mirrored_loc: torch.Tensor) -> torch.Tensor:
-    """Mean squared difference between π(mirror(o)) (`mirrored_loc`) and mirror(π(o)) (`loc` mirrored),
-    the policy means [action units²].
-
-    0 for a policy that acts on a mirrored fall exactly as the mirror image of how it acts on the
-    fall; the augmentation should drive it down, and without it nothing does.
-    """
-    return (mirrored_loc - mirror.action(loc)).square().mean()
 
 
 class _ActorOutputs:
@@ -178,12 +169,11 @@ class PPO:
         critic_net = value_net(self.critic)
         flat, flat_image, advantage_stats = self._learning_samples(batch, critic_net, generator)
         n, mb = flat.shape[0], flat.shape[0] // minibatches
-        # + the aids' (below); learning_rate_mean: the actor's rate averaged over the update's steps. The rule
-        # moves it at every minibatch, so `learning_rate` (the rate after the last one) can sit at lr_min while
-        # most steps were taken at several times that
+        # learning_rate_mean: the actor's rate averaged over its steps; the rule moves it at every minibatch, so
+        # `learning_rate` (the rate after the last one) can sit at lr_min while most steps were taken above it
         sums, critic_loss_sum = 0.0, 0.0  # the actor's minibatches' figures and every minibatch's value loss
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
-        count = actor_count = 0
+        count = actor_count = figured = 0
         actor_stepping = True  # until train.ppo.kl_stop ends the actor's steps for this update
         # every epoch's shuffle in one copy to the device (a copy waits for the device's queue)
         perms = torch.stack([torch.randperm(n, generator=generator) for _ in range(cfg.epochs)]).to(flat.device)
@@ -196,7 +186,7 @@ class PPO:
                         flat, data, rows, mb, unmirrored, critic_net
                     )
                     sums = sums + torch.stack([f.detach().to(flat.device, torch.float32) for f in figures.values()])
-                    actor_count += 1
+                    figured, actor_count = figured + 1, actor_count + actor_stepping  # the stopping one: figures
                 else:  # the critic alone: no actor pass, the costlier half of a step on a CPU
                     loss = loss_critic = _critic_loss(self.loss.loss_critic(data)[0], critic_net)
 
@@ -212,8 +202,9 @@ class PPO:
                 self.optimizer.step()
                 critic_loss_sum = critic_loss_sum + loss_critic.detach()
                 count += 1
-        stats = dict(zip(figures, sums / actor_count)) | advantage_stats  # the first minibatch steps the actor
+        stats = dict(zip(figures, sums / figured)) | advantage_stats
         stats["loss_critic"] = critic_loss_sum / count
+        # the first minibatch's KL is 0: the actor takes at least that step
         stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms[0] / actor_count, grad_norms[1] / count
         stats["actor_step_share"] = torch.tensor(actor_count / count, device=flat.device)  # < 1 only with kl_stop
         stats["num_minibatches"] = torch.tensor(float(minibatches), device=flat.device)
@@ -225,8 +216,8 @@ class PPO:
         """One minibatch's loss for both networks, its value loss, the figures it logs, and whether the actor
         steps on after it. The KL rule adapts the rate first; a KL past train.ppo.kl_stop × desired_kl leaves
         only the value loss to step on (this minibatch's actor step is the one the KL forbids) and ends the
-        actor's steps for the update — the steps the rule would take at lr_min move the policy little, and the
-        rate it keeps starts the next update where this one's steps were useful, not at lr_min."""
+        actor's steps for the update, the rate at lr_min: the steps the rule would take there move the policy
+        little, and the next update starts from there as it would have."""
         cfg = self.cfg
         old_loc, old_scale = flat["loc"][rows], flat["scale"][rows]  # the collecting policy's
         out = self.loss(data)
@@ -241,7 +232,7 @@ class PPO:
         self.optimizer.adapt(kl)
         # the same KL on every rank (averaged above), so every rank stops at the same minibatch
         stepping = cfg.kl_stop is None or float(kl) <= cfg.kl_stop * cfg.desired_kl
-        if not stepping and cfg.kl_stop_rate == "lr_min":
+        if not stepping:  # kept where the rule left it, the rate climbed to ~1e-3 and learned less an iteration
             self.optimizer.start_at(cfg.lr_min)
         figures = {
             "loss_objective": out["loss_objective"].mean(),
@@ -315,7 +306,7 @@ class PPO:
             data = torch.cat([data, flat_image[rows]], dim=0)
         unmirrored = data.shape[0]
         if self.mirror is not None:
-            data = self._with_mirror_image(data)
+            data = with_mirror_image(self.mirror, data, self.loss.tensor_keys)
         return data, unmirrored
 
     @torch.no_grad()
@@ -382,22 +373,6 @@ class PPO:
         gradients dwarf the actor's shrinks the actor's step too — these say when it does."""
         grads = [[p.grad for p in group["params"] if p.grad is not None] for group in self.optimizer.param_groups]
         return torch.stack([torch.nn.utils.get_total_norm(g) for g in grads])
-
-    def _with_mirror_image(self, data: TensorDict) -> TensorDict:
-        """The minibatch followed by its mirror image (what the loss reads, nothing else).
-
-        The image keeps the original's advantage, value target, old value and old log-probability:
-        the mirrored fall is as good as the fall, and its action is taken as having been as likely
-        (exactly so for a symmetric collecting policy, its std included), as rsl_rl's symmetry augmentation does.
-        """
-        keys = self.loss.tensor_keys
-        shared = [k for k in (keys.advantage, keys.value_target, keys.value, keys.sample_log_prob) if k in data.keys()]
-        original = data.select("policy", "critic", keys.action, *shared)
-        image = original.clone(recurse=False)
-        image.set("policy", self.mirror.actor(original["policy"]))
-        image.set("critic", self.mirror.critic(original["critic"]))
-        image.set(keys.action, self.mirror.action(original[keys.action]))
-        return torch.cat([original, image], dim=0)
 
     def state_dict(self) -> dict:
         return self.optimizer.state_dict()
