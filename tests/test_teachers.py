@@ -67,7 +67,11 @@ def test_the_target_is_the_teacher_of_the_drawn_weight_blended_in_ln_w(tmp_path,
 
 
 def test_a_taught_run_moves_toward_its_teachers_and_logs_how_far(tmp_path, teachers):
-    student = trainer(tmp_path, *DRAW_HEAD, taught(teachers), "train.teachers.coef=10", "train.iterations=10")
+    # without train=quick's stop at the KL limit, as docs/sensitivity_inputs.md measured it: the stop bounds the
+    # imitation's pull by the KL limit too (the gap 5.0 -> 3.6 with it)
+    student = trainer(
+        tmp_path, *DRAW_HEAD, taught(teachers), "train.teachers.coef=10", "train.iterations=10", "train.ppo.kl_stop=null"
+    )
     obs = student._first_observation()["policy"].clone()
     head = actor_slices(student.spec, sensitivity=True)["sensitivity"].start + student.spec.component_names.index("head")
     obs[:, head] = math.log(16.0)

@@ -303,7 +303,7 @@ def test_the_prior_penalty_pulls_the_learned_deviation_toward_the_prior(tmp_path
     left, logged = [], []
     for coef in (0.0, 1.0):
         actor, critic = copy.deepcopy(trainer.actor), copy.deepcopy(trainer.critic)
-        cfg = trainer.config.train.ppo.model_copy(update={"prior_coef": coef, "desired_kl": None, "learning_rate": 0.01, "epochs": 25})
+        cfg = trainer.config.train.ppo.model_copy(update={"prior_coef": coef, "desired_kl": None, "kl_stop": None, "learning_rate": 0.01, "epochs": 25})
         stats = ppo_module.PPO(actor, critic, cfg, rewards=trainer.env.rewards).update(
             batch.clone(), generator=torch.Generator().manual_seed(0)
         )
