@@ -173,7 +173,7 @@ class PPO:
         # `learning_rate` (the rate after the last one) can sit at lr_min while most steps were taken above it
         sums, critic_loss_sum = 0.0, 0.0  # the actor's minibatches' figures and every minibatch's value loss
         grad_norms = torch.zeros(2, device=flat.device)  # actor, critic: before clipping
-        count = actor_count = figured = 0
+        count = figured = 0  # minibatches; those the actor's loss was taken on (its last one the stopping one)
         actor_stepping = True  # until train.ppo.kl_stop ends the actor's steps for this update
         # every epoch's shuffle in one copy to the device (a copy waits for the device's queue)
         perms = torch.stack([torch.randperm(n, generator=generator) for _ in range(cfg.epochs)]).to(flat.device)
@@ -186,8 +186,8 @@ class PPO:
                         flat, data, rows, mb, unmirrored, critic_net
                     )
                     sums = sums + torch.stack([f.detach().to(flat.device, torch.float32) for f in figures.values()])
-                    figured, actor_count = figured + 1, actor_count + actor_stepping  # the stopping one: figures
-                else:  # the critic alone: no actor pass, the costlier half of a step on a CPU
+                    figured += 1
+                else:  # the critic alone: no actor pass, the larger part of a step on a CPU
                     loss = loss_critic = _critic_loss(self.loss.loss_critic(data)[0], critic_net)
 
                 self.optimizer.zero_grad()
@@ -204,7 +204,7 @@ class PPO:
                 count += 1
         stats = dict(zip(figures, sums / figured)) | advantage_stats
         stats["loss_critic"] = critic_loss_sum / count
-        # the first minibatch's KL is 0: the actor takes at least that step
+        actor_count = figured - (not actor_stepping)  # the first minibatch's KL is 0: at least that step
         stats["actor_grad_norm"], stats["critic_grad_norm"] = grad_norms[0] / actor_count, grad_norms[1] / count
         stats["actor_step_share"] = torch.tensor(actor_count / count, device=flat.device)  # < 1 only with kl_stop
         stats["num_minibatches"] = torch.tensor(float(minibatches), device=flat.device)
