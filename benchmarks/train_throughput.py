@@ -7,8 +7,9 @@ Measures, in one run, per world count, on either backend:
               (+ normaliser update)
   simulation  the same number of env steps in pure simulation: the backend's sim.step with
               the nominal pose held, no policy, no env, no TensorDicts
-  update      the same PPO update (same networks, epochs, minibatches) on random data of
-              the same shapes
+  update      the same PPO update (same networks, epochs, minibatches) on random observations
+              and rewards of the same shapes, the actions drawn by the actor before each update
+              (as collection draws them, so train.ppo.kl_stop stops the actor where training does)
 and the ratios: iteration / (simulation + update) (CPU target <= 1.3), collection / simulation
 (`collect_over_sim`, GPU target <= 1.4) and the update's share of an iteration (`update_share`,
 GPU target <= 0.25), with env steps per second. On a GPU every phase ends on a device sync.
@@ -26,6 +27,7 @@ import time
 
 import torch
 from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from fallkit.app import composed_config
 from fallkit.env.build import make_env
@@ -51,8 +53,9 @@ def config_for(args, envs: int | None):
 
 
 def time_update(config, spec, rewards, dims: tuple[int, int, int], device, precision: str, iterations: int) -> float:
-    """Seconds per PPO update (the config's networks, epochs and minibatches) on random data of one
-    iteration's shapes: what the update costs with no simulator in the way."""
+    """Seconds per PPO update (the config's networks, epochs and minibatches) on random observations and
+    rewards of one iteration's shapes, the actions drawn by the actor itself before each update as collection
+    draws them: what the update costs with no simulator in the way."""
     (obs_dim, critic_dim, act_dim), tc = dims, config.train
     sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     shape = (config.sim.num_envs, tc.num_steps)
@@ -73,14 +76,20 @@ def time_update(config, spec, rewards, dims: tuple[int, int, int], device, preci
     critic = critic_for(config, spec, rewards, critic_dim, precision)[0].to(device)
     ppo = PPO(actor, critic, tc.ppo, rewards=rewards)
     torch.set_num_threads(config.train.torch_threads or os.cpu_count() or 1)
-    with subnormals_flushed():  # as the trainer's update
+    def timed_update() -> float:
+        # the batch as collection leaves it: drawn by the current policy, so the KL starts at 0 and the actor
+        # steps as in training (a batch from an older policy would stop it at once under train.ppo.kl_stop)
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            actor(fake)
+        sync()
+        start = time.perf_counter()
         ppo.update(fake.clone())
         sync()
-        t = time.perf_counter()
-        for _ in range(iterations):
-            ppo.update(fake.clone())
-        sync()
-        t_update = (time.perf_counter() - t) / iterations
+        return time.perf_counter() - start
+
+    with subnormals_flushed():  # as the trainer's update
+        timed_update()
+        t_update = sum(timed_update() for _ in range(iterations)) / iterations
     torch.set_num_threads(1)
     return t_update
 
