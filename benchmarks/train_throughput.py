@@ -62,8 +62,7 @@ def time_update(config, spec, rewards, dims: tuple[int, int, int], device, preci
     r = lambda *tail: torch.randn(*shape, *tail, device=device)  # noqa: E731
     fake = TensorDict(
         {
-            "policy": r(obs_dim), "critic": r(critic_dim), "action": r(act_dim), "loc": r(act_dim),
-            "scale": torch.ones(*shape, act_dim, device=device), "action_log_prob": r(),
+            "policy": r(obs_dim), "critic": r(critic_dim),  # the actor adds action, loc, scale, log-prob
             "next": {
                 "critic": r(critic_dim), "reward": r(1), "reward_terms": r(len(rewards.columns)),
                 "done": torch.zeros(*shape, 1, dtype=torch.bool, device=device),
@@ -76,6 +75,7 @@ def time_update(config, spec, rewards, dims: tuple[int, int, int], device, preci
     critic = critic_for(config, spec, rewards, critic_dim, precision)[0].to(device)
     ppo = PPO(actor, critic, tc.ppo, rewards=rewards)
     torch.set_num_threads(config.train.torch_threads or os.cpu_count() or 1)
+
     def timed_update() -> float:
         # the batch as collection leaves it: drawn by the current policy, so the KL starts at 0 and the actor
         # steps as in training (a batch from an older policy would stop it at once under train.ppo.kl_stop)
